@@ -1,0 +1,1 @@
+"""Learned and exact simulators behind one interface."""

@@ -1,0 +1,1 @@
+"""MPS operators, split-step stages and the exact (ground-truth) stage implementations."""
