@@ -20,6 +20,10 @@ from enum import IntEnum
 import torch
 from torch import Tensor
 
+from lagfluid.errors import SceneError
+
+__all__ = ["ParticleState", "ParticleType", "SceneError", "SceneParams"]
+
 
 class ParticleType(IntEnum):
     """Particle type codes, identical to the ``ptype`` column of the authors' grid files."""
@@ -27,10 +31,6 @@ class ParticleType(IntEnum):
     FLUID = 1
     WALL = 2
     DUMMY = 3
-
-
-class SceneError(ValueError):
-    """A scene or particle state is invalid (raised early, naming the bad value)."""
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,15 @@
+"""Exceptions that the command line reports as one clear line (no traceback from deep inside torch)."""
+
+from __future__ import annotations
+
+
+class LagfluidError(Exception):
+    """Base class of every error lagfluid raises on purpose for bad input or a failed run."""
+
+
+class SceneError(LagfluidError, ValueError):
+    """A scene or particle state is invalid (raised early, naming the bad value)."""
+
+
+class RolloutError(LagfluidError, RuntimeError):
+    """A rollout stopped by its guard: NaN/inf, a particle leaving the domain, Courant number too high."""
