@@ -1,0 +1,1 @@
+"""HDF5 trajectory store, dataset generation and PyG datasets."""

@@ -1,0 +1,161 @@
+"""HDF5 trajectory files in the lagfluid format (LagrangeBench-like layout).
+
+Layout of ``rollout.h5`` (``format="lagfluid"``, ``format_version=1`` on the root)::
+
+    /00000                      one group per trajectory
+        time               (T,)       float64  seconds; frame 0 is the initial state
+        position           (T, Nf, 3) float32  fluid particles
+        velocity           (T, Nf, 3) float32
+        pressure           (T, Nf)    float32
+        boundary_position  (Nb, 3)    float32  static boundary particles, stored once
+        boundary_type      (Nb,)      int8     2 wall, 3 dummy
+        attrs: dt, write_every, l0, gravity, viscosity, density, model, scene, config (YAML), version,
+               git_commit, complete, stop_reason, ...
+
+Frames are appended to ``<name>.part`` and flushed one by one, so an interrupted run leaves a readable
+file; :meth:`TrajectoryWriter.close` renames it to the final name (atomic on POSIX).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+import h5py
+import numpy as np
+
+from lagfluid.errors import LagfluidError
+
+FORMAT = "lagfluid"
+FORMAT_VERSION = 1
+
+
+class TrajectoryFileError(LagfluidError, OSError):
+    """A trajectory file is missing, corrupt or not in the lagfluid format."""
+
+
+def _attr_value(value: Any) -> Any:
+    """HDF5 attributes take numbers, strings and arrays; anything else is stored as JSON text."""
+    if value is None:
+        return "null"
+    if isinstance(value, (str, bool, int, float, np.integer, np.floating, np.ndarray)):
+        return value
+    if isinstance(value, (list, tuple)) and all(isinstance(v, (int, float)) for v in value):
+        return np.asarray(value, dtype=np.float64)
+    return json.dumps(value)
+
+
+class TrajectoryWriter:
+    """Append frames of one trajectory to an HDF5 file.
+
+    Args:
+        path: final file path (``rollout.h5``); frames go to ``path + ".part"`` until :meth:`close`.
+        n_fluid: number of fluid particles Nf.
+        boundary_position: (Nb, 3) static boundary positions.
+        boundary_type: (Nb,) boundary particle types.
+        attrs: group attributes (physical and solver parameters, provenance).
+        group: trajectory group name.
+    """
+
+    def __init__(
+        self,
+        path: str | os.PathLike,
+        n_fluid: int,
+        boundary_position: np.ndarray,
+        boundary_type: np.ndarray,
+        attrs: dict[str, Any],
+        group: str = "00000",
+    ) -> None:
+        self.path = Path(path)
+        self.tmp_path = self.path.with_name(self.path.name + ".part")
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        # No HDF5 file lock: a user (or a crash-recovery read) may open the .part file while a long run is
+        # still writing it; frames are flushed one by one, so what they see is consistent up to the last one.
+        self.file = h5py.File(self.tmp_path, "w", locking=False)
+        self.file.attrs["format"] = FORMAT
+        self.file.attrs["format_version"] = FORMAT_VERSION
+        self.group = self.file.create_group(group)
+        for key, value in attrs.items():
+            self.group.attrs[key] = _attr_value(value)
+        self.group.attrs["complete"] = False
+        compress = {"compression": "gzip", "compression_opts": 4, "shuffle": True}
+        # One frame per chunk: appends touch exactly one chunk, and readers can load any frame alone.
+        nf = max(int(n_fluid), 1)
+        self.time = self.group.create_dataset("time", (0,), maxshape=(None,), dtype="f8", chunks=(1024,))
+        self.position = self.group.create_dataset(
+            "position", (0, n_fluid, 3), maxshape=(None, n_fluid, 3), dtype="f4", chunks=(1, nf, 3), **compress
+        )
+        self.velocity = self.group.create_dataset(
+            "velocity", (0, n_fluid, 3), maxshape=(None, n_fluid, 3), dtype="f4", chunks=(1, nf, 3), **compress
+        )
+        self.pressure = self.group.create_dataset(
+            "pressure", (0, n_fluid), maxshape=(None, n_fluid), dtype="f4", chunks=(1, nf), **compress
+        )
+        self.group.create_dataset("boundary_position", data=np.asarray(boundary_position, np.float32), **compress)
+        self.group.create_dataset("boundary_type", data=np.asarray(boundary_type, np.int8))
+        self.frames = 0
+
+    def append(self, time: float, position: np.ndarray, velocity: np.ndarray, pressure: np.ndarray) -> None:
+        """Append one frame: ``position``/``velocity`` (Nf, 3), ``pressure`` (Nf,); flushes to disk."""
+        t = self.frames
+        for ds in (self.time, self.position, self.velocity, self.pressure):
+            ds.resize(t + 1, axis=0)
+        self.time[t] = time
+        self.position[t] = position
+        self.velocity[t] = velocity
+        self.pressure[t] = pressure
+        self.frames += 1
+        self.file.flush()
+
+    def close(self, complete: bool = True, stop_reason: str | None = None) -> Path:
+        """Mark the trajectory complete (or not, with the reason), close and rename to the final path."""
+        if self.file.id.valid:
+            self.group.attrs["complete"] = bool(complete)
+            self.group.attrs["stop_reason"] = stop_reason or ""
+            self.group.attrs["frames"] = self.frames
+            self.file.close()
+            os.replace(self.tmp_path, self.path)
+        return self.path
+
+    def __enter__(self) -> TrajectoryWriter:
+        return self
+
+    def __exit__(self, exc_type: object, exc: object, tb: object) -> None:
+        self.close(complete=exc is None, stop_reason=None if exc is None else str(exc))
+
+
+def read_trajectory(path: str | os.PathLike, group: str = "00000") -> dict[str, Any]:
+    """Load one trajectory into numpy arrays plus an ``attrs`` dict.
+
+    Raises:
+        TrajectoryFileError: the file is missing, unreadable, not a lagfluid file, of another format version,
+            or lacks the group or an array.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise TrajectoryFileError(f"trajectory file not found: {path}")
+    try:
+        f = h5py.File(path, "r")
+    except OSError as err:
+        raise TrajectoryFileError(f"cannot read {path} as HDF5 (corrupt or truncated?): {err}") from err
+    with f:
+        if f.attrs.get("format") != FORMAT:
+            raise TrajectoryFileError(f"{path} is not a lagfluid trajectory (format={f.attrs.get('format')!r})")
+        version = int(f.attrs.get("format_version", -1))
+        if version != FORMAT_VERSION:
+            raise TrajectoryFileError(f"{path} has format_version {version}; this lagfluid reads {FORMAT_VERSION}")
+        if group not in f:
+            raise TrajectoryFileError(f"{path} has no trajectory group '{group}' (groups: {sorted(f)})")
+        g = f[group]
+        out: dict[str, Any] = {}
+        for name in ("time", "position", "velocity", "pressure", "boundary_position", "boundary_type"):
+            if name not in g:
+                raise TrajectoryFileError(f"{path}:{group} lacks the array '{name}'")
+            out[name] = g[name][()]
+        out["attrs"] = dict(g.attrs)
+    t, nf = out["position"].shape[:2]
+    if out["velocity"].shape != (t, nf, 3) or out["pressure"].shape != (t, nf) or out["time"].shape != (t,):
+        raise TrajectoryFileError(f"{path}:{group} arrays disagree in shape (T={t}, Nf={nf})")
+    return out
