@@ -1,0 +1,416 @@
+"""MPS operators against lattice oracles, hand-computed values and invariances."""
+
+from __future__ import annotations
+
+import math
+from functools import cache
+
+import pytest
+import torch
+
+from lagfluid.physics import operators as ops
+
+L0 = 0.05
+SIDE = 13  # 13^3 simple-cubic lattice
+DTYPES = [torch.float32, torch.float64]
+# Interior lattice constants, from sums over the integer offsets (exact to float64 rounding).
+N0_21 = 14.418575408286713  # number density, re = 2.1 l0
+N0_31 = 54.32120938182034  # number density, re = 3.1 l0
+LAM_31 = 3.2434216760380647  # lambda / l0^2, re = 3.1 l0
+RTOL = {torch.float32: 1e-5, torch.float64: 1e-10}
+
+
+def brute_edges(pos: torch.Tensor, r: float) -> torch.Tensor:
+    """All ordered pairs 0 < |x_j - x_i| < r, as [j, i] (independent of lagfluid.neighbors)."""
+    p = pos.detach().to(torch.float64)
+    d = torch.cdist(p, p)
+    i, j = torch.nonzero((d < r) & (d > 0), as_tuple=True)
+    return torch.stack([j, i])
+
+
+@cache
+def _lattice(dtype: torch.dtype, re_factor: float):
+    axis = torch.arange(SIDE)
+    idx = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), dim=-1).reshape(-1, 3)
+    # Centred at the origin: smaller coordinates, smaller float32 rounding.
+    pos = ((idx - (SIDE - 1) / 2).to(torch.float64) * L0).to(dtype)
+    margin = math.floor(re_factor)  # sites at least this many layers in have every neighbour
+    interior = ((idx >= margin) & (idx <= SIDE - 1 - margin)).all(dim=1)
+    return pos, brute_edges(pos, re_factor * L0), interior, idx
+
+
+def lattice(dtype: torch.dtype, re_factor: float):
+    pos, ei, interior, idx = _lattice(dtype, re_factor)
+    return pos.clone(), ei.clone(), interior.clone(), idx.clone()
+
+
+def close(actual, expected, dtype, rtol=None, atol=0.0):
+    torch.testing.assert_close(
+        torch.as_tensor(actual, dtype=torch.float64),
+        torch.as_tensor(expected, dtype=torch.float64).expand_as(torch.as_tensor(actual)),
+        rtol=RTOL[dtype] if rtol is None else rtol,
+        atol=atol,
+    )
+
+
+# ----------------------------------------------------------------------------------------- kernel
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_kernel_values(dtype):
+    re = 2.1 * L0
+    r = torch.tensor([0.0, 5e-9, re / 4, re / 2, re * 0.999, re, 1.5 * re], dtype=dtype)
+    w = ops.kernel(r, re)
+    assert w.dtype == dtype and w.shape == r.shape
+    expected = torch.tensor([0.0, 0.0, 3.0, 1.0, 1 / 0.999 - 1, 0.0, 0.0], dtype=torch.float64)
+    close(w, expected, dtype, rtol=1e-5 if dtype == torch.float32 else 1e-12, atol=1e-6)
+
+
+def test_kernel_gradient_finite_at_excluded_pairs():
+    r = torch.tensor([0.0, 1e-9, 0.05, 0.2], dtype=torch.float64, requires_grad=True)
+    ops.kernel(r, 0.105).sum().backward()
+    assert torch.isfinite(r.grad).all()
+    torch.testing.assert_close(r.grad, torch.tensor([0.0, 0.0, -0.105 / 0.05**2, 0.0], dtype=torch.float64))
+
+
+def test_edge_geometry():
+    pos = torch.tensor([[0.0, 0.0, 0.0], [0.3, 0.4, 0.0]], dtype=torch.float64)
+    rel, dist = ops.edge_geometry(pos, torch.tensor([[1, 0], [0, 1]]))
+    torch.testing.assert_close(rel, torch.tensor([[0.3, 0.4, 0.0], [-0.3, -0.4, 0.0]], dtype=torch.float64))
+    torch.testing.assert_close(dist, torch.tensor([0.5, 0.5], dtype=torch.float64))
+
+
+# ---------------------------------------------------------------------------- densities, lambda
+@pytest.mark.parametrize("dtype", DTYPES)
+@pytest.mark.parametrize(("re_factor", "expected"), [(2.1, N0_21), (3.1, N0_31)])
+def test_number_density_lattice(dtype, re_factor, expected):
+    pos, ei, interior, _ = lattice(dtype, re_factor)
+    n = ops.number_density(pos, ei, re_factor * L0)
+    assert n.shape == (pos.shape[0],) and n.dtype == dtype
+    close(n[interior], expected, dtype)
+    assert round(expected, 4) == {2.1: 14.4186, 3.1: 54.3212}[re_factor]
+    # Every truncated neighbourhood has a smaller density (at 3.1 l0 the mildest truncation, one missing
+    # (0, 0, 3) neighbour, costs w = 3.1/3 - 1 = 0.033); the corner has about a third of n0.
+    assert float(n[~interior].max()) < expected - 0.03
+    assert float(n[0]) < expected / 2
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_reference_density(dtype):
+    pos, ei, interior, _ = lattice(dtype, 2.1)
+    n = ops.number_density(pos, ei, 2.1 * L0)
+    n0 = ops.reference_density(n, torch.ones_like(interior))
+    assert n0.dim() == 0 and n0.dtype == dtype
+    close(n0, N0_21, dtype)
+    close(ops.reference_density(n), N0_21, dtype)
+    corner = torch.zeros_like(interior)
+    corner[0] = True
+    assert float(ops.reference_density(n, corner)) == float(n[0])
+    with pytest.raises(ValueError, match="no particle"):
+        ops.reference_density(n, torch.zeros_like(interior))
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_laplacian_lambda_lattice(dtype):
+    pos, ei, interior, idx = lattice(dtype, 3.1)
+    n0_lap, lam = ops.laplacian_lambda(pos, ei, 3.1 * L0, torch.ones_like(interior))
+    assert n0_lap.dim() == 0 and lam.dim() == 0 and lam.dtype == dtype
+    close(n0_lap, N0_31, dtype)
+    close(lam, LAM_31 * L0**2, dtype)
+    assert round(LAM_31, 4) == 3.2434
+    # n0_lap and lambda come from the same (densest masked) particle; a mask that only holds a face
+    # particle gives that particle's values, smaller than the interior ones (the far neighbours are missing).
+    _, dist = ops.edge_geometry(pos, ei)
+    w = ops.kernel(dist, 3.1 * L0)
+    n = torch.zeros(pos.shape[0], dtype=dtype).index_add(0, ei[1], w)
+    lam_i = torch.zeros(pos.shape[0], dtype=dtype).index_add(0, ei[1], dist**2 * w) / n
+    face = torch.zeros_like(interior)
+    k = int(torch.nonzero((idx == torch.tensor([6, 6, 12])).all(dim=1))[0, 0])
+    face[k] = True
+    n_face, lam_face = ops.laplacian_lambda(pos, ei, 3.1 * L0, face)
+    close(n_face, n[k], dtype)
+    close(lam_face, lam_i[k], dtype)
+    assert float(lam_face) < float(lam) * 0.95 and float(n_face) < float(n0_lap) * 0.8
+    with pytest.raises(ValueError):
+        ops.laplacian_lambda(pos, ei, 3.1 * L0, torch.zeros_like(interior))
+
+
+# ----------------------------------------------------------------------------------- gradients
+A = (1.5, -2.0, 0.7)
+
+
+def linear_field(pos, a=A, b=3.0):
+    return pos @ torch.tensor(a, dtype=pos.dtype) + b
+
+
+def atol_for(dtype, scale):
+    return scale * (2e-4 if dtype == torch.float32 else 1e-10)
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_gradient_linear_field_exact_in_interior(dtype):
+    pos, ei, interior, _ = lattice(dtype, 2.1)
+    g = ops.gradient(pos, ei, linear_field(pos), 2.1 * L0, N0_21)
+    assert g.shape == (pos.shape[0], 3) and g.dtype == dtype
+    close(
+        g[interior],
+        torch.tensor(A, dtype=torch.float64).expand(int(interior.sum()), 3),
+        dtype,
+        0,
+        atol_for(dtype, 2),
+    )
+    # ... and not at the surface, where the neighbourhood is one-sided.
+    assert float((g[~interior] - torch.tensor(A, dtype=dtype)).abs().max()) > 0.1
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+@pytest.mark.parametrize("include_self", [True, False])
+def test_min_pressure_gradient_linear_field_interior(dtype, include_self):
+    # The extra (p_i - p_min,i) term multiplies sum_j e_j w_j / |e_j|^2, which vanishes on a point-
+    # symmetric neighbourhood: in the interior the stabilised gradient of a linear field is exactly a
+    # (no lattice factor).
+    pos, ei, interior, _ = lattice(dtype, 2.1)
+    g = ops.min_pressure_gradient(pos, ei, linear_field(pos), 2.1 * L0, N0_21, include_self=include_self)
+    close(
+        g[interior],
+        torch.tensor(A, dtype=torch.float64).expand(int(interior.sum()), 3),
+        dtype,
+        0,
+        atol_for(dtype, 2),
+    )
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_min_pressure_gradient_constant_and_shift(dtype):
+    pos, ei, _, _ = lattice(dtype, 2.1)
+    re = 2.1 * L0
+    g0 = ops.min_pressure_gradient(pos, ei, torch.full((pos.shape[0],), 7.0, dtype=dtype), re, N0_21)
+    assert bool((g0 == 0).all())
+    p = torch.rand(pos.shape[0], generator=torch.Generator().manual_seed(0), dtype=torch.float64).to(dtype)
+    g = ops.min_pressure_gradient(pos, ei, p, re, N0_21)
+    g_shift = ops.min_pressure_gradient(pos, ei, p + 1.0, re, N0_21)
+    scale = float(g.abs().max())
+    close(g_shift, g, dtype, 0, scale * (1e-5 if dtype == torch.float32 else 1e-12))
+
+
+def test_min_pressure_gradient_two_particles_by_hand():
+    pos = torch.tensor([[0.0, 0.0, 0.0], [L0, 0.0, 0.0]], dtype=torch.float64)
+    ei = torch.tensor([[1, 0], [0, 1]])
+    re, n0 = 2.1 * L0, 10.0
+    coef = 3 / n0 * (2.1 - 1) / L0  # d/n0 * w / r (the unit vector is +-x)
+    p = torch.tensor([2.0, 5.0], dtype=torch.float64)
+    # Particle 0: p_min = 2, term (5 - 2) along +x. Particle 1: p_min = min(5, 2) = 2, term (2 - 2) = 0.
+    expected = torch.tensor([[3.0 * coef, 0, 0], [0, 0, 0]], dtype=torch.float64)
+    torch.testing.assert_close(ops.min_pressure_gradient(pos, ei, p, re, n0), expected)
+    # The plain gradient is the same at 0 but -3 coef * (-x) = +3 coef along x at 1.
+    torch.testing.assert_close(
+        ops.gradient(pos, ei, p, re, n0)[1], torch.tensor([3.0 * coef, 0, 0], dtype=torch.float64)
+    )
+    # Without p_i in the minimum, a single neighbour is its own minimum: no gradient at all.
+    torch.testing.assert_close(
+        ops.min_pressure_gradient(pos, ei, p, re, n0, include_self=False),
+        torch.zeros(2, 3, dtype=torch.float64),
+    )
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_min_pressure_gradient_top_face_by_hand(dtype):
+    # p = c z at the centre of the top face: neighbours have offsets e (in l0) with e_z <= 0, down to
+    # e_z = -2, so p_min = p_i - 2 c l0 and grad = c d/n0 sum_e (e_z + 2) e / |e|^2 w(|e|).
+    pos, ei, _, idx = lattice(dtype, 2.1)
+    c = 4.0
+    g = ops.min_pressure_gradient(pos, ei, c * pos[:, 2], 2.1 * L0, N0_21)
+    k = int(torch.nonzero((idx == torch.tensor([6, 6, 12])).all(dim=1))[0, 0])
+    expected = [0.0, 0.0, 0.0]
+    for ex in range(-2, 3):
+        for ey in range(-2, 3):
+            for ez in range(-2, 1):
+                r = math.sqrt(ex * ex + ey * ey + ez * ez)
+                if 0 < r < 2.1:
+                    for axis, e in enumerate((ex, ey, ez)):
+                        expected[axis] += c * 3 / N0_21 * (ez + 2) * e / r**2 * (2.1 / r - 1)
+    close(g[k], expected, dtype, 0, atol_for(dtype, 10))
+    # The lattice factor at the top face: grad_z = -0.49 c, the opposite sign of the field's slope (the
+    # p_min shift times sum_j e_j w_j / |e_j|^2, which is nonzero on a one-sided neighbourhood), while the
+    # plain gradient gives +c/2 (half the neighbourhood).
+    assert expected[2] == pytest.approx(-0.48959675 * c, rel=1e-6)
+    plain = ops.gradient(pos, ei, c * pos[:, 2], 2.1 * L0, N0_21)[k]
+    close(plain, [0.0, 0.0, 0.5 * c], dtype, 1e-6, atol_for(dtype, 10))
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_min_pressure_gradient_is_repulsive(dtype):
+    # Every term (p_j - p_min,i) >= 0: at the top face (all e_z <= 0) grad_z <= 0 for any pressure field,
+    # so -grad p / rho never pulls a surface particle into the fluid. The plain gradient has no such sign.
+    pos, ei, _, idx = lattice(dtype, 2.1)
+    p = torch.rand(pos.shape[0], generator=torch.Generator().manual_seed(1), dtype=torch.float64).to(dtype)
+    top = idx[:, 2] == SIDE - 1
+    assert bool((ops.min_pressure_gradient(pos, ei, p, 2.1 * L0, N0_21)[top, 2] <= 0).all())
+    assert bool((ops.gradient(pos, ei, p, 2.1 * L0, N0_21)[top, 2] > 0).any())
+
+
+# ---------------------------------------------------------------------------------- divergence
+M = ((0.3, -1.2, 0.5), (0.8, 2.0, -0.4), (1.1, 0.6, -0.9))
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_divergence_linear_field(dtype):
+    pos, ei, interior, _ = lattice(dtype, 2.1)
+    m = torch.tensor(M, dtype=dtype)
+    vel = pos @ m.T + torch.tensor([1.0, -2.0, 0.5], dtype=dtype)
+    div = ops.divergence(pos, ei, vel, 2.1 * L0, N0_21)
+    assert div.shape == (pos.shape[0],) and div.dtype == dtype
+    close(div[interior], 0.3 + 2.0 - 0.9, dtype, 0, atol_for(dtype, 3))
+    # A velocity z-difference times the y-offset (the authors' GPU defect) would change the result.
+    defect = torch.zeros_like(vel)
+    defect[:, 2] = pos[:, 1]
+    assert float(ops.divergence(pos, ei, defect, 2.1 * L0, N0_21)[interior].abs().max()) < atol_for(dtype, 1)
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_divergence_of_rotation_is_zero_everywhere(dtype):
+    # (v_j - v_i).(x_j - x_i) = e^T W e = 0 for antisymmetric W, at every particle, surface included.
+    pos, ei, _, _ = lattice(dtype, 2.1)
+    w = torch.tensor([[0.0, -2.0, 1.0], [2.0, 0.0, -0.5], [-1.0, 0.5, 0.0]], dtype=dtype)
+    div = ops.divergence(pos, ei, pos @ w.T, 2.1 * L0, N0_21)
+    close(div, 0.0, dtype, 0, atol_for(dtype, 3))
+
+
+# ----------------------------------------------------------------------------------- Laplacian
+def quadratic(pos):
+    x, y, z = pos.unbind(dim=1)
+    return x**2 + 2 * y**2 - z**2 + x * y
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_laplacian_quadratic_linear_and_columns(dtype):
+    pos, ei, interior, _ = lattice(dtype, 3.1)
+    re = 3.1 * L0
+    n0_lap, lam = N0_31, LAM_31 * L0**2
+    lap = ops.laplacian(pos, ei, quadratic(pos), re, n0_lap, lam)
+    assert lap.shape == (pos.shape[0],) and lap.dtype == dtype
+    atol = 2e-3 if dtype == torch.float32 else 1e-9
+    close(lap[interior], 4.0, dtype, 0, atol)
+    close(ops.laplacian(pos, ei, linear_field(pos), re, n0_lap, lam)[interior], 0.0, dtype, 0, atol)
+    cols = torch.stack([quadratic(pos), linear_field(pos), pos[:, 0] ** 2], dim=1)
+    lap_cols = ops.laplacian(pos, ei, cols, re, n0_lap, lam)
+    assert lap_cols.shape == cols.shape
+    close(lap_cols[:, 0], lap, dtype, 0, atol * 1e-3)
+    close(lap_cols[interior], torch.tensor([4.0, 0.0, 2.0]).expand(int(interior.sum()), 3), dtype, 0, atol)
+    # The constants from laplacian_lambda (tensors) work the same as the Python floats.
+    n0_t, lam_t = ops.laplacian_lambda(pos, ei, re, torch.ones_like(interior))
+    close(ops.laplacian(pos, ei, quadratic(pos), re, n0_t, lam_t)[interior], 4.0, dtype, 0, atol)
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_laplacian_weights(dtype):
+    dist = torch.tensor([0.0, 0.5 * 3.1 * L0, 3.1 * L0], dtype=dtype)
+    coef = ops.laplacian_weights(dist, 3.1 * L0, 50.0, 2e-3, dim=2)
+    close(coef, torch.tensor([0.0, 4 / (2e-3 * 50.0), 0.0]), dtype)
+
+
+# ------------------------------------------------------------------------ graph-level properties
+def all_ops(pos, ei, num_nodes=None):
+    """Every operator on fixed smooth + random fields, as a dict of (N, ...) outputs."""
+    n = pos.shape[0]
+    gen = torch.Generator().manual_seed(2)
+    p = torch.rand(n, generator=gen, dtype=torch.float64).to(pos.dtype)
+    v = torch.rand(n, 3, generator=gen, dtype=torch.float64).to(pos.dtype)
+    return _ops_on(pos, ei, p, v, num_nodes)
+
+
+def _ops_on(pos, ei, p, v, num_nodes=None):
+    re_n, re_l = 2.1 * L0, 3.1 * L0
+    near = ei[:, (pos[ei[0]] - pos[ei[1]]).norm(dim=1) < re_n]
+    return {
+        "number_density": ops.number_density(pos, near, re_n, num_nodes=num_nodes),
+        "gradient": ops.gradient(pos, near, p, re_n, N0_21, num_nodes=num_nodes),
+        "min_pressure_gradient": ops.min_pressure_gradient(pos, near, p, re_n, N0_21, num_nodes=num_nodes),
+        "min_pressure_gradient_noself": ops.min_pressure_gradient(
+            pos, near, p, re_n, N0_21, include_self=False, num_nodes=num_nodes
+        ),
+        "divergence": ops.divergence(pos, near, v, re_n, N0_21, num_nodes=num_nodes),
+        "laplacian": ops.laplacian(pos, ei, v, re_l, N0_31, LAM_31 * L0**2, num_nodes=num_nodes),
+    }
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_edges_into_a_subset_of_targets(dtype):
+    pos, ei, _, idx = lattice(dtype, 3.1)
+    full = all_ops(pos, ei)
+    target = (idx[:, 2] < 5) | (idx[:, 0] == 7)  # a "fluid" block plus a sheet
+    sub = ei[:, target[ei[1]]]
+    part = all_ops(pos, sub, num_nodes=pos.shape[0])
+    for name, out in part.items():
+        assert out.shape == full[name].shape, name
+        assert bool((out[~target] == 0).all()), name
+        torch.testing.assert_close(out[target], full[name][target], rtol=0, atol=0, msg=name)
+        assert bool((full[name][~target] != 0).any()), name  # the check above is not vacuous
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_translation_invariance(dtype):
+    pos, ei, _, _ = lattice(dtype, 3.1)
+    pos = pos + 0.01 * torch.randn(
+        pos.shape, generator=torch.Generator().manual_seed(3), dtype=torch.float64
+    ).to(dtype)
+    ei = brute_edges(pos, 3.1 * L0)
+    shift = torch.tensor([0.37, -1.2, 2.5], dtype=dtype)
+    base, moved = all_ops(pos, ei), all_ops(pos + shift, ei)
+    for name in base:
+        scale = float(base[name].abs().max())
+        tol = scale * (2e-4 if dtype == torch.float32 else 1e-11)
+        torch.testing.assert_close(moved[name], base[name], rtol=0, atol=tol, msg=name)
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_permutation_equivariance(dtype):
+    pos, _, _, _ = lattice(dtype, 3.1)
+    gen = torch.Generator().manual_seed(4)
+    pos = pos + 0.01 * torch.randn(pos.shape, generator=gen, dtype=torch.float64).to(dtype)
+    ei = brute_edges(pos, 3.1 * L0)
+    n = pos.shape[0]
+    p = torch.rand(n, generator=gen, dtype=torch.float64).to(dtype)
+    v = torch.rand(n, 3, generator=gen, dtype=torch.float64).to(dtype)
+    perm = torch.randperm(n, generator=gen)  # new particle k is old particle perm[k]
+    inv = torch.empty_like(perm)
+    inv[perm] = torch.arange(n)
+    ei_new = inv[ei][:, torch.randperm(ei.shape[1], generator=gen)]  # relabel and shuffle edge order
+    base = _ops_on(pos, ei, p, v)
+    permuted = _ops_on(pos[perm], ei_new, p[perm], v[perm])
+    for name in base:
+        scale = float(base[name].abs().max())
+        tol = scale * (1e-5 if dtype == torch.float32 else 1e-12)
+        torch.testing.assert_close(permuted[name], base[name][perm], rtol=0, atol=tol, msg=name)
+
+
+# ------------------------------------------------------------------------------------ autograd
+def test_autograd_through_values_and_positions():
+    gen = torch.Generator().manual_seed(5)
+    pos = torch.rand(25, 3, generator=gen, dtype=torch.float64) * 4 * L0
+    ei = brute_edges(pos, 2.1 * L0)
+    assert ei.shape[1] > 50
+    p = torch.rand(25, generator=gen, dtype=torch.float64, requires_grad=True)
+    v = torch.rand(25, 3, generator=gen, dtype=torch.float64, requires_grad=True)
+    x = pos.clone().requires_grad_(True)
+    re = 2.1 * L0
+    assert torch.autograd.gradcheck(lambda p: ops.gradient(pos, ei, p, re, N0_21), (p,))
+    assert torch.autograd.gradcheck(lambda v: ops.divergence(pos, ei, v, re, N0_21), (v,))
+    assert torch.autograd.gradcheck(lambda v: ops.laplacian(pos, ei, v, re, 10.0, 2e-3), (v,))
+    assert torch.autograd.gradcheck(lambda p: ops.min_pressure_gradient(pos, ei, p, re, N0_21), (p,))
+    assert torch.autograd.gradcheck(lambda x: ops.number_density(x, ei, re), (x,))
+    assert torch.autograd.gradcheck(lambda x: ops.divergence(x, ei, v.detach(), re, N0_21), (x,))
+    # A plain backward pass reaches the values.
+    ops.gradient(pos, ei, p, re, N0_21).square().sum().backward()
+    assert p.grad is not None and bool((p.grad != 0).any())
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_cuda_matches_cpu(dtype):
+    pos, ei, _, _ = lattice(dtype, 3.1)
+    cpu = all_ops(pos, ei)
+    gpu = all_ops(pos.cuda(), ei.cuda())
+    for name in cpu:
+        assert gpu[name].device.type == "cuda"
+        scale = float(cpu[name].abs().max())
+        tol = scale * (1e-5 if dtype == torch.float32 else 1e-12)
+        torch.testing.assert_close(gpu[name].cpu(), cpu[name], rtol=0, atol=tol, msg=name)
