@@ -14,7 +14,7 @@ Conventions (every module relies on them):
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import InitVar, dataclass, field, replace
 from enum import IntEnum
 
 import torch
@@ -86,6 +86,8 @@ class ParticleState:
         step: number of steps taken since the initial state.
         bounds: optional axis-aligned domain, shape (2, 3) (lower, upper corner); a fluid particle
             outside it has left the domain.
+        check: validate on construction (simulators pass False for the states they step to: the
+            rollout guard checks those, once, with a message about the run rather than the scene).
     """
 
     pos: Tensor
@@ -96,11 +98,13 @@ class ParticleState:
     time: float = 0.0
     step: int = 0
     bounds: Tensor | None = None
+    check: InitVar[bool] = True
 
-    def __post_init__(self) -> None:
+    def __post_init__(self, check: bool) -> None:
         if self.pressure is None:
             self.pressure = torch.zeros(self.pos.shape[0], dtype=self.pos.dtype, device=self.pos.device)
-        self.validate()
+        if check:
+            self.validate()
 
     # ------------------------------------------------------------------ construction
     @classmethod
