@@ -1,0 +1,410 @@
+"""Radius graphs: every backend against brute force and an independent oracle; batching, receivers,
+loops, overflow, input checks; edge geometry; the CSR kernel adjacency and its gradients."""
+
+from __future__ import annotations
+
+import itertools
+import math
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+
+import lagfluid.neighbors as nb
+from lagfluid.neighbors import (
+    NeighborOverflowError,
+    available_backends,
+    edge_vectors,
+    kernel_adjacency,
+    radius_graph,
+    restrict_radius,
+)
+
+L0 = 0.05
+FAST = [b for b in available_backends() if b != "brute"]
+CUDA = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
+
+
+def lattice(m: int, dim: int = 3, dtype: torch.dtype = torch.float64) -> torch.Tensor:
+    """Simple-cubic lattice of m^dim points, spacing L0, as exact as the dtype allows."""
+    grid = torch.stack(torch.meshgrid(*[torch.arange(m)] * dim, indexing="ij"), dim=-1).reshape(-1, dim)
+    return (grid.to(torch.float64) * L0).to(dtype)
+
+
+def oracle(pos: torch.Tensor, r: float, batch=None, receivers=None, loop=False) -> torch.Tensor:
+    """All pairs |x_j - x_i| < r by numpy float64 broadcasting, sorted by (i, j): independent of lagfluid."""
+    x = pos.double().numpy()
+    d = np.sqrt(((x[None, :, :] - x[:, None, :]) ** 2).sum(-1))  # d[i, j]
+    mask = d < r
+    if not loop:
+        np.fill_diagonal(mask, False)
+    if batch is not None:
+        b = batch.numpy()
+        mask &= b[:, None] == b[None, :]
+    if receivers is not None:
+        mask &= receivers.numpy()[:, None]
+    i, j = np.nonzero(mask)
+    return torch.from_numpy(np.stack([j, i])).long()
+
+
+def lattice_degree(factor: float, dim: int) -> int:
+    """Number of nonzero integer vectors shorter than ``factor`` (interior degree on a unit lattice)."""
+    k = math.ceil(factor)
+    return sum(
+        1
+        for v in itertools.product(range(-k, k + 1), repeat=dim)
+        if any(v) and sum(c * c for c in v) < factor * factor
+    )
+
+
+def assert_sorted_strict(edge_index: torch.Tensor, pos: torch.Tensor, r: float) -> None:
+    j, i = edge_index
+    key = i * pos.shape[0] + j
+    assert bool((key[1:] > key[:-1]).all()), "edges not sorted by (target, source) or repeated"
+    assert bool((edge_vectors(pos, edge_index)[1] < r).all())
+
+
+# ------------------------------------------------------------------------------------------ correctness
+@pytest.mark.parametrize("backend", FAST)
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("n", [1, 2, 57, 400])
+@pytest.mark.parametrize("dim", [3, 2])
+def test_random_points_match_brute_and_oracle(backend, dtype, n, dim):
+    gen = torch.Generator().manual_seed(n + dim)
+    pos = torch.rand(n, dim, generator=gen, dtype=torch.float64).to(dtype)
+    r = 0.21
+    ref = radius_graph(pos, r, backend="brute")
+    out = radius_graph(pos, r, backend=backend)
+    assert out.dtype == torch.long and out.shape[0] == 2
+    assert torch.equal(out, ref)
+    assert torch.equal(ref, oracle(pos, r))
+    assert_sorted_strict(out, pos, r)
+    if n > 2:
+        assert out.shape[1] > 0
+
+
+def test_empty_input_and_auto_backend():
+    assert radius_graph(torch.zeros(0, 3), 0.1).shape == (2, 0)
+    assert radius_graph(torch.zeros(0, 3), 0.1, backend="cell_list").shape == (2, 0)
+    assert radius_graph(torch.zeros(1, 3), 0.1).shape == (2, 0)
+    assert radius_graph(torch.zeros(1, 3), 0.1, loop=True).tolist() == [[0], [0]]
+    pos = torch.rand(100, 3, generator=torch.Generator().manual_seed(0))
+    assert torch.equal(radius_graph(pos, 0.3), radius_graph(pos, 0.3, backend="brute"))
+
+
+@pytest.mark.parametrize("backend", [*FAST, "brute"])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("factor", [0.92, 2.1, 3.1])
+def test_lattice_interior_degree(backend, dtype, factor):
+    m = 9  # centre node (4, 4, 4) is 4 spacings from every face: its 3.1 l0 ball is complete
+    pos = lattice(m, dtype=dtype)
+    r = factor * L0
+    out = radius_graph(pos, r, backend=backend)
+    assert torch.equal(out, oracle(pos, r))
+    degree = torch.bincount(out[1], minlength=pos.shape[0])
+    centre = (4 * m + 4) * m + 4
+    expected = {0.92: 0, 2.1: 6 + 12 + 8 + 6, 3.1: 122}[factor]
+    assert expected == lattice_degree(factor, 3)
+    assert int(degree[centre]) == expected
+    # The degree is the same for every node whose ball fits inside the lattice.
+    idx = torch.arange(m)
+    k = math.ceil(factor)
+    inner = ((idx >= k) & (idx < m - k)).nonzero().flatten()
+    interior = ((inner[:, None, None] * m + inner[None, :, None]) * m + inner[None, None, :]).flatten()
+    assert bool((degree[interior] == expected).all())
+
+
+@pytest.mark.parametrize("backend", [*FAST, "brute"])
+def test_square_lattice_2d(backend):
+    pos = lattice(9, dim=2)
+    for factor, expected in ((2.1, 12), (3.1, 28)):
+        assert lattice_degree(factor, 2) == expected
+        out = radius_graph(pos, factor * L0, backend=backend)
+        assert int(torch.bincount(out[1], minlength=81)[4 * 9 + 4]) == expected
+        assert torch.equal(out, oracle(pos, factor * L0))
+
+
+@pytest.mark.parametrize("cells_per_radius", [1, 2, 3, 4])
+def test_cell_list_cell_sizes(cells_per_radius):
+    gen = torch.Generator().manual_seed(1)
+    pos = lattice(7) + 0.2 * L0 * torch.rand(343, 3, generator=gen, dtype=torch.float64)
+    r = 2.6 * L0
+    recv = torch.arange(0, 343, 3)
+    i, j = nb._search_cell_list(pos, r, None, recv, cells_per_radius)
+    i, j = nb._sort_pairs(i, j, 343)
+    mask = torch.zeros(343, dtype=torch.bool)
+    mask[recv] = True
+    assert torch.equal(torch.stack([j, i]), oracle(pos, r, receivers=mask))
+
+
+@pytest.mark.parametrize("backend", FAST)
+def test_far_flung_particle(backend):
+    # One particle 1e7 m away: the cell list's keys would overflow int64 without compressing gaps.
+    pos = torch.cat([lattice(5), torch.tensor([[1.0e7, 1.0e7, 1.0e7], [1.0e7, 1.0e7, 1.0e7 + 0.04]])])
+    r = 1.5 * L0
+    out = radius_graph(pos, r, backend=backend)
+    assert torch.equal(out, radius_graph(pos, r, backend="brute"))
+    assert [125, 126] in out.t().tolist()
+
+
+# ------------------------------------------------------------------------------------------ options
+@pytest.mark.parametrize("backend", [*FAST, "brute"])
+def test_batching_is_block_diagonal(backend):
+    gen = torch.Generator().manual_seed(2)
+    a = torch.rand(150, 3, generator=gen, dtype=torch.float64)
+    b = a[:120] + 0.01  # overlaps scene a in space: a shared search would join them everywhere
+    r = 0.2
+    pos = torch.cat([a, b])
+    batch = torch.cat([torch.zeros(150, dtype=torch.long), torch.full((120,), 7)])
+    alone = torch.cat([radius_graph(a, r, backend=backend), radius_graph(b, r, backend=backend) + 150], dim=1)
+    out = radius_graph(pos, r, batch=batch, backend=backend)
+    assert torch.equal(out, alone)
+    assert bool((batch[out[0]] == batch[out[1]]).all())
+    assert torch.equal(out, oracle(pos, r, batch=batch))
+    # Unsorted (interleaved) graph ids give the same graph, permuted.
+    perm = torch.randperm(270, generator=gen)
+    out_p = radius_graph(pos[perm], r, batch=batch[perm], backend=backend)
+    assert torch.equal(out_p, oracle(pos[perm], r, batch=batch[perm]))
+
+
+@pytest.mark.parametrize("backend", [*FAST, "brute"])
+def test_receivers_only_targets(backend):
+    gen = torch.Generator().manual_seed(3)
+    pos = torch.rand(300, 3, generator=gen, dtype=torch.float64)
+    receivers = torch.zeros(300, dtype=torch.bool)
+    receivers[:120] = True  # "fluid" first, then boundary, as ParticleState sorts them
+    receivers[200] = True
+    r = 0.18
+    out = radius_graph(pos, r, receivers=receivers, backend=backend)
+    full = radius_graph(pos, r, backend=backend)
+    assert torch.equal(out, full[:, receivers[full[1]]])
+    assert bool(receivers[out[1]].all())
+    assert bool((~receivers[out[0]]).any()), "non-receivers must still appear as sources"
+    batch = (torch.arange(300) % 2).long()
+    out_b = radius_graph(pos, r, receivers=receivers, batch=batch, loop=True, backend=backend)
+    assert torch.equal(out_b, oracle(pos, r, batch=batch, receivers=receivers, loop=True))
+    every = radius_graph(pos, r, receivers=torch.ones(300, dtype=torch.bool), backend=backend)
+    assert torch.equal(every, full)
+    none = radius_graph(pos, r, receivers=torch.zeros(300, dtype=torch.bool), backend=backend)
+    assert none.shape == (2, 0)
+
+
+@pytest.mark.parametrize("backend", [*FAST, "brute"])
+def test_loop(backend):
+    pos = lattice(4) + 0.001
+    r = 1.5 * L0
+    out = radius_graph(pos, r, loop=True, backend=backend)
+    plain = radius_graph(pos, r, backend=backend)
+    loops = torch.arange(64).repeat(2, 1)
+    assert out.shape[1] == plain.shape[1] + 64
+    assert torch.equal(out, oracle(pos, r, loop=True))
+    expected = torch.cat([plain, loops], dim=1)
+    order = torch.argsort(expected[1] * 64 + expected[0])
+    assert torch.equal(out, expected[:, order])
+
+
+@pytest.mark.parametrize("backend", [*FAST, "brute"])
+def test_overflow_raises_never_truncates(backend):
+    pos = lattice(7)
+    r = 2.1 * L0  # interior degree 32
+    with pytest.raises(NeighborOverflowError, match=r"32 neighbours.*max_num_neighbors=31") as err:
+        radius_graph(pos, r, max_num_neighbors=31, backend=backend)
+    assert err.value.count == 32 and err.value.cap == 31 and isinstance(err.value, ValueError)
+    assert f"particle {err.value.node}" in str(err.value)
+    assert torch.equal(radius_graph(pos, r, max_num_neighbors=32, backend=backend), oracle(pos, r))
+    with pytest.raises(NeighborOverflowError, match="33 neighbours"):
+        radius_graph(pos, r, max_num_neighbors=32, loop=True, backend=backend)
+
+
+def fake_torch_cluster(calls: list) -> SimpleNamespace:
+    """Stand-in with torch_cluster.radius's contract: sorted batches, silent truncation at the cap."""
+
+    def radius(x, y, r, batch_x=None, batch_y=None, max_num_neighbors=32, num_workers=1, batch_size=None):
+        if batch_x is not None:
+            assert bool((batch_x[1:] >= batch_x[:-1]).all()) and bool((batch_y[1:] >= batch_y[:-1]).all())
+        mask = torch.cdist(y.double(), x.double()) <= r
+        if batch_x is not None:
+            mask &= batch_y[:, None] == batch_x[None, :]
+        mask &= torch.cumsum(mask.long(), dim=1) <= max_num_neighbors  # drops the rest, silently
+        calls.append(max_num_neighbors)
+        row, col = torch.nonzero(mask, as_tuple=True)
+        return torch.stack([row, col])
+
+    return SimpleNamespace(radius=radius)
+
+
+def test_torch_cluster_adapter_with_fake(monkeypatch):
+    calls: list = []
+    monkeypatch.setattr(nb, "_import_torch_cluster", lambda: fake_torch_cluster(calls))
+    assert "torch_cluster" in available_backends()
+    gen = torch.Generator().manual_seed(4)
+    pos = lattice(7) + 0.1 * L0 * torch.rand(343, 3, generator=gen, dtype=torch.float64)
+    r = 3.1 * L0
+    batch = torch.randint(0, 3, (343,), generator=gen)  # unsorted
+    receivers = torch.rand(343, generator=gen) < 0.6
+    ref = oracle(pos, r, batch=batch, receivers=receivers)
+    assert torch.equal(radius_graph(pos, r, batch=batch, receivers=receivers, backend="torch_cluster"), ref)
+    # A cap far below the degree: saturated centres are searched again exactly, nothing is lost.
+    monkeypatch.setattr(nb, "_TORCH_CLUSTER_DEFAULT_CAP", 10)
+    assert torch.equal(radius_graph(pos, r, backend="torch_cluster"), oracle(pos, r))
+    assert calls[-1] == 10
+    top = int(torch.bincount(oracle(pos, r)[1]).max())
+    assert torch.equal(radius_graph(pos, r, max_num_neighbors=top, backend="torch_cluster"), oracle(pos, r))
+    assert calls[-1] == top + 2
+    with pytest.raises(NeighborOverflowError, match=f"{top} neighbours"):
+        radius_graph(pos, r, max_num_neighbors=top - 1, backend="torch_cluster")
+
+
+def test_torch_cluster_real():
+    pytest.importorskip("torch_cluster")
+    pos = lattice(8, dtype=torch.float32)
+    batch = (torch.arange(512) % 2).long()
+    for factor in (0.92, 2.1, 3.1):
+        r = factor * L0
+        out = radius_graph(pos, r, batch=batch, backend="torch_cluster")
+        assert torch.equal(out, radius_graph(pos, r, batch=batch, backend="brute"))
+
+
+@CUDA
+@pytest.mark.parametrize("backend", ["auto", "cell_list", "brute", "scipy"])
+def test_cuda_matches_cpu(backend):
+    gen = torch.Generator().manual_seed(5)
+    pos = lattice(8, dtype=torch.float32) + 0.1 * L0 * torch.rand(512, 3, generator=gen)
+    receivers = torch.arange(512) < 300
+    for factor in (0.92, 2.1, 3.1):
+        ref = radius_graph(pos, factor * L0, receivers=receivers, backend="brute")
+        out = radius_graph(pos.cuda(), factor * L0, receivers=receivers.cuda(), backend=backend)
+        assert out.device.type == "cuda"
+        assert torch.equal(out.cpu(), ref)
+
+
+# ------------------------------------------------------------------------------------------ bad input
+@pytest.mark.parametrize(
+    ("kwargs", "needle"),
+    [
+        ({"pos": torch.zeros(4, 3, dtype=torch.long)}, "torch.int64"),
+        ({"pos": torch.zeros(4, 4)}, "(4, 4)"),
+        ({"pos": torch.zeros(4)}, "(4,)"),
+        ({"pos": [[0.0, 0.0, 0.0]]}, "list"),
+        ({"pos": torch.tensor([[0.0, 0, 0], [1, float("nan"), 0]])}, "particle 1"),
+        ({"pos": torch.tensor([[0.0, 0, 0], [1, 0, float("inf")]])}, "inf"),
+        ({"r": 0.0}, "0.0"),
+        ({"r": -0.1}, "-0.1"),
+        ({"r": float("nan")}, "nan"),
+        ({"r": float("inf")}, "inf"),
+        ({"r": "big"}, "'big'"),
+        ({"backend": "kdtree"}, "'kdtree'"),
+        ({"batch": torch.zeros(3, dtype=torch.long)}, "length N=4"),
+        ({"batch": torch.zeros(4)}, "torch.float32"),
+        ({"receivers": torch.ones(4, dtype=torch.long)}, "torch.int64"),
+        ({"receivers": torch.ones(5, dtype=torch.bool)}, "(5,)"),
+        ({"max_num_neighbors": -1}, "-1"),
+    ],
+)
+def test_bad_input_raises_value_error(kwargs, needle):
+    args = {"pos": torch.rand(4, 3), "r": 0.1, **kwargs}
+    with pytest.raises(ValueError) as err:
+        radius_graph(args.pop("pos"), args.pop("r"), **args)
+    assert needle in str(err.value)
+
+
+def test_unknown_backend_lists_available():
+    with pytest.raises(ValueError, match=r"scipy.*cell_list.*brute"):
+        radius_graph(torch.rand(4, 3), 0.1, backend="kdtree")
+    if nb._import_torch_cluster() is None:
+        with pytest.raises(ValueError, match="torch_cluster is not installed"):
+            radius_graph(torch.rand(4, 3), 0.1, backend="torch_cluster")
+
+
+# ------------------------------------------------------------------------------------------ geometry
+def test_edge_vectors_and_restrict_radius():
+    gen = torch.Generator().manual_seed(6)
+    pos = lattice(6) + 0.2 * L0 * torch.rand(216, 3, generator=gen, dtype=torch.float64)
+    big = radius_graph(pos, 3.1 * L0)
+    rel, dist = edge_vectors(pos, big)
+    assert torch.allclose(rel, pos[big[0]] - pos[big[1]], rtol=0, atol=0)
+    assert torch.allclose(dist, rel.norm(dim=1), rtol=1e-15, atol=0)
+    for factor in (3.1, 2.1, 1.2, 0.92):
+        small, mask = restrict_radius(big, dist, factor * L0)
+        assert mask.shape == dist.shape and mask.dtype == torch.bool
+        for backend in FAST:
+            assert torch.equal(small, radius_graph(pos, factor * L0, backend=backend))
+    with pytest.raises(ValueError, match="-1"):
+        restrict_radius(big, dist, -1)
+
+
+def test_edge_vectors_gradient_with_self_loops():
+    pos = (lattice(3) + 0.01).requires_grad_()
+    edges = radius_graph(pos, 1.5 * L0, loop=True)
+    _, dist = edge_vectors(pos, edges)
+    assert bool((dist[edges[0] == edges[1]] == 0).all())
+    (grad,) = torch.autograd.grad((dist**2).sum() + dist.sum(), pos)
+    assert bool(torch.isfinite(grad).all())
+    _, plain = edge_vectors(pos.detach(), edges)
+    assert torch.equal(dist.detach(), plain)
+
+
+# ------------------------------------------------------------------------------------------ adjacency
+def loop_sum(edge_index, weight, x, n_target):
+    out = torch.zeros((n_target, *x.shape[1:]), dtype=x.dtype)
+    for e in range(edge_index.shape[1]):
+        j, i = int(edge_index[0, e]), int(edge_index[1, e])
+        out[i] += weight[e] * x[j]
+    return out
+
+
+def test_kernel_adjacency_matmul_equals_loop():
+    gen = torch.Generator().manual_seed(7)
+    pos = torch.rand(60, 3, generator=gen, dtype=torch.float64)
+    edges = radius_graph(pos, 0.35)
+    _, dist = edge_vectors(pos, edges)
+    w = (0.35 / dist - 1.0).clamp(min=0)  # the MPS kernel
+    x = torch.rand(60, 4, generator=gen, dtype=torch.float64)
+    a = kernel_adjacency(edges, w, 60)
+    assert a.layout == torch.sparse_csr and a.shape == (60, 60)
+    assert torch.allclose(a @ x, loop_sum(edges, w, x, 60), rtol=1e-12, atol=1e-12)
+    assert torch.allclose(a @ x[:, 0], loop_sum(edges, w, x[:, 0], 60), rtol=1e-12, atol=1e-12)
+    dense = torch.zeros(60, 60, dtype=torch.float64)
+    dense[edges[1], edges[0]] = w
+    assert torch.equal(a.to_dense(), dense)
+    # Unsorted edges are sorted (weights follow); a rectangular (targets, sources) matrix.
+    perm = torch.randperm(edges.shape[1], generator=gen)
+    assert torch.allclose(kernel_adjacency(edges[:, perm], w[perm], 60) @ x, a @ x, rtol=1e-12, atol=0)
+    receivers = torch.arange(60) < 20
+    sub = radius_graph(pos, 0.35, receivers=receivers)
+    _, d_sub = edge_vectors(pos, sub)
+    w_sub = (0.35 / d_sub - 1.0).clamp(min=0)
+    rect = kernel_adjacency(sub, w_sub, (20, 60))
+    assert rect.shape == (20, 60)
+    assert torch.allclose(rect @ x, loop_sum(sub, w_sub, x, 20), rtol=1e-12, atol=1e-12)
+    assert kernel_adjacency(sub[:, :0], w_sub[:0], 5).to_dense().abs().sum() == 0
+
+
+def test_kernel_adjacency_rejects_bad_edges():
+    edges = torch.tensor([[0, 1, 1], [1, 0, 0]])
+    with pytest.raises(ValueError, match="more than once"):
+        kernel_adjacency(edges, torch.ones(3), 2)
+    with pytest.raises(ValueError, match="out of range"):
+        kernel_adjacency(torch.tensor([[0], [5]]), torch.ones(1), 3)
+    with pytest.raises(ValueError, match=r"weight must have shape \(1,\), got \(2,\)"):
+        kernel_adjacency(torch.tensor([[0], [1]]), torch.ones(2), 2)
+
+
+def test_kernel_adjacency_gradients():
+    gen = torch.Generator().manual_seed(8)
+    pos = torch.rand(25, 3, generator=gen, dtype=torch.float64)
+    edges = radius_graph(pos, 0.4)
+    w = torch.rand(edges.shape[1], generator=gen, dtype=torch.float64, requires_grad=True)
+    x = torch.rand(25, 3, generator=gen, dtype=torch.float64, requires_grad=True)
+    # Fast mode: a few random directional derivatives instead of one column per input entry.
+    assert torch.autograd.gradcheck(lambda w, x: kernel_adjacency(edges, w, 25) @ x, (w, x), fast_mode=True)
+    # Weights computed from positions: gradients reach pos through the CSR values.
+    p = pos.clone().requires_grad_()
+    _, dist = edge_vectors(p, edges)
+    out = kernel_adjacency(edges, (0.4 / dist - 1.0), 25) @ x
+    ref = loop_sum(edges, 0.4 / edge_vectors(p, edges)[1] - 1.0, x, 25)
+    g1 = torch.autograd.grad(out.square().sum(), (p, x))
+    g2 = torch.autograd.grad(ref.square().sum(), (p, x))
+    for a, b in zip(g1, g2, strict=True):
+        assert torch.allclose(a, b, rtol=1e-10, atol=1e-12)
