@@ -1,0 +1,136 @@
+"""Exact (ground-truth) stages of the MPS solver: viscosity + gravity, the collision rule, the PPE.
+
+Koshizuka & Oka (1996) with the pressure solver of Lee et al. (2011), as in the FGN authors' code
+(``../shared/reference/FGN_ORIGINAL.md``, "MPS step"). Each class implements one stage protocol of
+:mod:`lagfluid.physics.stages`; the learned stages of FGN implement the same protocols.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from lagfluid.physics import operators as ops
+from lagfluid.physics.ppe import assemble_ppe, ppe_source, solve_ppe
+from lagfluid.physics.stages import StepContext
+from lagfluid.state import ParticleType
+
+
+class ExactAdvection:
+    """``a_i = nu lap(v)_i + g`` for fluid particles (Laplacian model over ``re_laplacian``).
+
+    With ``nu = 0`` no neighbour work is done at all.
+    """
+
+    def __call__(self, ctx: StepContext, pos: Tensor, vel: Tensor) -> Tensor:
+        """Acceleration (N_fluid, 3) at ``(x^n, v^n)``."""
+        nf, params = ctx.n_fluid, ctx.params
+        acc = torch.as_tensor(params.gravity, dtype=pos.dtype, device=pos.device).expand(nf, 3).clone()
+        if params.viscosity > 0:
+            g = ctx.graph(pos, ctx.settings.re_laplacian)
+            g = g.select(g.edge_index[1] < nf)
+            with ctx.timer("advection", pos.device):
+                lap = ops.laplacian(
+                    pos,
+                    g.edge_index,
+                    vel,
+                    ctx.radius(ctx.settings.re_laplacian),
+                    ctx.constants.n0_lap,
+                    ctx.constants.lam,
+                    dim=params.dim,
+                    num_nodes=pos.shape[0],
+                )
+                acc += params.viscosity * lap[:nf]
+        return acc
+
+
+class CollisionRule:
+    """Elastic-collision correction of approaching pairs closer than ``re_collision``.
+
+    For fluid ``i`` and non-dummy ``j`` with ``r_ij = x_j - x_i``, ``|r_ij| < re_col`` and
+    ``(v_i - v_j).r_ij > 0`` (approaching)::
+
+        v_i -= (1 + e)/2 * [(v_i - v_j).r_ij / |r_ij|^2] r_ij
+
+    summed over all such ``j`` using the velocities before the collision (the authors' rule).
+    """
+
+    def __call__(self, ctx: StepContext, pos: Tensor, vel: Tensor) -> Tensor:
+        """Corrected fluid velocities (N_fluid, 3) at ``(x*, v*)``."""
+        nf = ctx.n_fluid
+        g = ctx.graph(pos, ctx.settings.re_collision)
+        with ctx.timer("collision", pos.device):
+            src, dst = g.edge_index
+            keep = (dst < nf) & (ctx.state.ptype[src] != ParticleType.DUMMY)
+            v_new = vel[:nf].clone()
+            if not bool(keep.any()):  # nothing is close enough: no collision work at all
+                ctx.info["collisions"] = 0.0
+                return v_new
+            src, dst, rel, dist = src[keep], dst[keep], g.rel[keep], g.dist[keep]
+            approach = ((vel[dst] - vel[src]) * rel).sum(dim=1)
+            hit = approach > 0
+            factor = 0.5 * (1.0 + ctx.settings.restitution) * approach[hit] / dist[hit].square()
+            v_new.index_add_(0, dst[hit], -factor.unsqueeze(1) * rel[hit])
+            ctx.info["collisions"] = float(hit.sum())
+        return v_new
+
+
+class ExactPressure:
+    """Pressure from the MPS pressure Poisson equation on the non-free-surface fluid and wall particles.
+
+    * free surface: ``n_i < beta n0`` (number density at ``re_density``); such particles are Dirichlet
+      ``p = 0``; dummy particles carry no pressure and only complete the walls' neighbourhoods;
+    * source (Lee et al. 2011): ``b_i = -gamma_div div(v**)_i / dt + gamma_n (n_i - n0) / (dt^2 n0)``;
+    * matrix: the Laplacian model at ``re_laplacian`` (see :mod:`lagfluid.physics.ppe`);
+    * solved by preconditioned CG, warm-started from the previous step's pressure.
+    """
+
+    def __call__(self, ctx: StepContext, pos: Tensor, vel: Tensor) -> Tensor:
+        """Pressure (N,) of every particle at ``(x**, v**)``."""
+        s, c, params = ctx.settings, ctx.constants, ctx.params
+        n_all, ptype = pos.shape[0], ctx.state.ptype
+        g_lap = ctx.graph(pos, s.re_laplacian)
+        with ctx.timer("pressure_assembly", pos.device):
+            g_n = g_lap.within(ctx.radius(s.re_density))
+            n = ops.number_density(pos, g_n.edge_index, ctx.radius(s.re_density), num_nodes=n_all)
+            surface = n < s.surface_beta * c.n0
+            solve_mask = (ptype != ParticleType.DUMMY) & ~surface
+            g_div = g_lap.within(ctx.radius(s.re_gradient))
+            div = ops.divergence(
+                pos, g_div.edge_index, vel, ctx.radius(s.re_gradient), c.n0, dim=params.dim, num_nodes=n_all
+            )
+            b = ppe_source(
+                div, n, c.n0, params.dt, gamma_div=s.source_divergence, gamma_density=s.source_density
+            )
+            coef = ops.laplacian_weights(
+                g_lap.dist, ctx.radius(s.re_laplacian), c.n0_lap, c.lam, dim=params.dim
+            )
+            # Free-surface particles are Dirichlet p = 0; dummy particles are in neither mask, so the
+            # assembly ignores them (they only complete the walls' number density).
+            system = assemble_ppe(
+                g_lap.edge_index,
+                coef,
+                solve_mask,
+                params.density,
+                dirichlet_mask=surface & (ptype != ParticleType.DUMMY),
+            )
+        with ctx.timer("pressure_solve", pos.device):
+            x0 = system.gather(ctx.state.pressure) if s.ppe_warm_start else None
+            p, info = solve_ppe(
+                system,
+                system.gather(b),
+                x0=x0,
+                tol=s.ppe_tol,
+                tol_mode=s.ppe_tol_mode,
+                maxiter=s.ppe_maxiter,
+                method=s.ppe_method,
+            )
+            pressure = system.scatter(torch.as_tensor(p, device=pos.device).to(pos.dtype))
+        ctx.info.update(
+            ppe_iterations=float(info.iterations),
+            ppe_residual=float(info.residual),
+            ppe_converged=float(info.converged),
+            ppe_unknowns=float(system.num_unknowns),
+            surface_particles=float(surface[: ctx.n_fluid].sum()),
+        )
+        return pressure

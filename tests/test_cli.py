@@ -1,0 +1,88 @@
+import json
+import subprocess
+import sys
+
+import pytest
+from hydra import compose, initialize_config_dir
+from hydra.errors import ConfigCompositionException
+from omegaconf.errors import ConfigAttributeError
+
+from lagfluid.registry import UnknownNameError, get_simulator_factory
+from lagfluid.run import CONF_DIR, _group_names, available_models, check_command_line
+
+
+def _compose(*overrides):
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        return compose(config_name="config", overrides=list(overrides))
+
+
+@pytest.mark.parametrize(
+    ("arg", "kind"), [("model=nope", "model"), ("scene=atlantis", "scene"), ("task=dance", "task")]
+)
+def test_unknown_names_give_one_line_listing_the_choices(arg, kind):
+    msg = check_command_line([arg])
+    bad = arg.split("=")[1]
+    assert msg is not None and "\n" not in msg
+    assert f"unknown {kind} '{bad}'" in msg and "available:" in msg
+
+
+def test_known_names_pass_and_sweeps_are_left_to_hydra():
+    assert check_command_line(["model=mps", "scene=dam", "steps=3"]) is None
+    assert check_command_line(["scene=dam,nope"]) is None
+
+
+def test_cli_unknown_model_exits_nonzero_with_one_line():
+    out = subprocess.run(
+        [sys.executable, "-m", "lagfluid.run", "model=nope"], capture_output=True, text=True, timeout=120
+    )
+    assert out.returncode == 2
+    lines = out.stderr.strip().splitlines()
+    assert len(lines) == 1 and "unknown model 'nope'" in lines[0] and "mps" in lines[0]
+
+
+def test_registry_unknown_name_lists_available():
+    with pytest.raises(UnknownNameError, match=r"available: .*mps"):
+        get_simulator_factory("nope")
+
+
+def test_struct_mode_rejects_typos():
+    with pytest.raises((ConfigCompositionException, ConfigAttributeError)):
+        _compose("stepz=3")
+
+
+@pytest.mark.parametrize("model", available_models())
+@pytest.mark.parametrize("scene", _group_names("scene"))
+def test_every_model_and_scene_composes_and_instantiates(model, scene, authors_dam_grid):
+    from lagfluid.rollout import build_initial_state, build_simulator
+
+    extra = [f"scene.path={authors_dam_grid}"] if scene == "file" else []
+    cfg = _compose(f"model={model}", f"scene={scene}", "steps=1", "dt=0.001", "device=cpu", "seed=3", *extra)
+    assert cfg.model.name == model and cfg.scene.name == scene and cfg.dt == 0.001
+    state = build_initial_state(cfg)
+    assert state.params.dt == 0.001 and state.n_fluid > 0
+    sim = build_simulator(cfg)
+    assert sim.name == model
+    sim.reset(state)
+
+
+def test_file_scene_without_path_is_a_clear_error():
+    from lagfluid.errors import SceneError
+    from lagfluid.rollout import build_initial_state
+
+    with pytest.raises(SceneError, match="needs the option path"):
+        build_initial_state(_compose("scene=file"))
+
+
+def test_debug_experiment_writes_the_three_outputs(tmp_path):
+    from lagfluid.data.store import read_trajectory
+    from lagfluid.rollout import simulate
+
+    cfg = _compose("experiment=debug", "steps=4", "write_every=2", f"out_dir={tmp_path}")
+    metrics = simulate(cfg)
+    assert (tmp_path / "preview.png").stat().st_size > 1000
+    saved = json.loads((tmp_path / "metrics.json").read_text())
+    assert saved["steps"] == 4 and saved["complete"] and saved["model"] == "mps"
+    assert saved == json.loads(json.dumps(metrics))
+    traj = read_trajectory(tmp_path / "rollout.h5")
+    assert traj["position"].shape[0] == 3  # frames 0, 2, 4
+    assert traj["attrs"]["dt"] == cfg.scene.params.dt and "n0" in traj["attrs"]
