@@ -85,15 +85,27 @@ class TrajectoryWriter:
         nf = max(int(n_fluid), 1)
         self.time = self.group.create_dataset("time", (0,), maxshape=(None,), dtype="f8", chunks=(1024,))
         self.position = self.group.create_dataset(
-            "position", (0, n_fluid, 3), maxshape=(None, n_fluid, 3), dtype="f4", chunks=(1, nf, 3), **compress
+            "position",
+            (0, n_fluid, 3),
+            maxshape=(None, n_fluid, 3),
+            dtype="f4",
+            chunks=(1, nf, 3),
+            **compress,
         )
         self.velocity = self.group.create_dataset(
-            "velocity", (0, n_fluid, 3), maxshape=(None, n_fluid, 3), dtype="f4", chunks=(1, nf, 3), **compress
+            "velocity",
+            (0, n_fluid, 3),
+            maxshape=(None, n_fluid, 3),
+            dtype="f4",
+            chunks=(1, nf, 3),
+            **compress,
         )
         self.pressure = self.group.create_dataset(
             "pressure", (0, n_fluid), maxshape=(None, n_fluid), dtype="f4", chunks=(1, nf), **compress
         )
-        self.group.create_dataset("boundary_position", data=np.asarray(boundary_position, np.float32), **compress)
+        self.group.create_dataset(
+            "boundary_position", data=np.asarray(boundary_position, np.float32), **compress
+        )
         self.group.create_dataset("boundary_type", data=np.asarray(boundary_type, np.int8))
         self.frames = 0
 
@@ -142,10 +154,14 @@ def read_trajectory(path: str | os.PathLike, group: str = "00000") -> dict[str, 
         raise TrajectoryFileError(f"cannot read {path} as HDF5 (corrupt or truncated?): {err}") from err
     with f:
         if f.attrs.get("format") != FORMAT:
-            raise TrajectoryFileError(f"{path} is not a lagfluid trajectory (format={f.attrs.get('format')!r})")
+            raise TrajectoryFileError(
+                f"{path} is not a lagfluid trajectory (format={f.attrs.get('format')!r})"
+            )
         version = int(f.attrs.get("format_version", -1))
         if version != FORMAT_VERSION:
-            raise TrajectoryFileError(f"{path} has format_version {version}; this lagfluid reads {FORMAT_VERSION}")
+            raise TrajectoryFileError(
+                f"{path} has format_version {version}; this lagfluid reads {FORMAT_VERSION}"
+            )
         if group not in f:
             raise TrajectoryFileError(f"{path} has no trajectory group '{group}' (groups: {sorted(f)})")
         g = f[group]
