@@ -84,25 +84,11 @@ class TrajectoryWriter:
         # One frame per chunk: appends touch exactly one chunk, and readers can load any frame alone.
         nf = max(int(n_fluid), 1)
         self.time = self.group.create_dataset("time", (0,), maxshape=(None,), dtype="f8", chunks=(1024,))
-        self.position = self.group.create_dataset(
-            "position",
-            (0, n_fluid, 3),
-            maxshape=(None, n_fluid, 3),
-            dtype="f4",
-            chunks=(1, nf, 3),
-            **compress,
-        )
-        self.velocity = self.group.create_dataset(
-            "velocity",
-            (0, n_fluid, 3),
-            maxshape=(None, n_fluid, 3),
-            dtype="f4",
-            chunks=(1, nf, 3),
-            **compress,
-        )
-        self.pressure = self.group.create_dataset(
-            "pressure", (0, n_fluid), maxshape=(None, n_fluid), dtype="f4", chunks=(1, nf), **compress
-        )
+        self.frame_arrays = {}
+        for name, shape in (("position", (n_fluid, 3)), ("velocity", (n_fluid, 3)), ("pressure", (n_fluid,))):
+            self.frame_arrays[name] = self.group.create_dataset(
+                name, (0, *shape), maxshape=(None, *shape), dtype="f4", chunks=(1, nf, *shape[1:]), **compress
+            )
         self.group.create_dataset(
             "boundary_position", data=np.asarray(boundary_position, np.float32), **compress
         )
@@ -112,12 +98,12 @@ class TrajectoryWriter:
     def append(self, time: float, position: np.ndarray, velocity: np.ndarray, pressure: np.ndarray) -> None:
         """Append one frame: ``position``/``velocity`` (Nf, 3), ``pressure`` (Nf,); flushes to disk."""
         t = self.frames
-        for ds in (self.time, self.position, self.velocity, self.pressure):
-            ds.resize(t + 1, axis=0)
+        self.time.resize(t + 1, axis=0)
         self.time[t] = time
-        self.position[t] = position
-        self.velocity[t] = velocity
-        self.pressure[t] = pressure
+        for name, values in (("position", position), ("velocity", velocity), ("pressure", pressure)):
+            ds = self.frame_arrays[name]
+            ds.resize(t + 1, axis=0)
+            ds[t] = values
         self.frames += 1
         self.file.flush()
 
