@@ -46,12 +46,27 @@ class Graph:
         """Sub-graph with ``dist < radius`` (``radius`` must not exceed this graph's radius)."""
         if radius > self.radius * (1 + 1e-12):
             raise ValueError(f"cannot restrict a graph of radius {self.radius} to a larger radius {radius}")
+        if radius >= self.radius:  # every edge already qualifies: no pass over the edges
+            return self
         keep = self.dist < radius
         return Graph(self.edge_index[:, keep], self.rel[keep], self.dist[keep], radius)
 
     def select(self, keep: Tensor) -> Graph:
         """Sub-graph of the edges where the (E,) bool mask ``keep`` is True."""
         return Graph(self.edge_index[:, keep], self.rel[keep], self.dist[keep], self.radius)
+
+    def into_first(self, n: int) -> Graph:
+        """Sub-graph of the edges whose target is one of particles ``0 .. n-1`` (e.g. the fluid).
+
+        Edges are sorted by target, so this is a slice (a view, no copy) rather than a mask.
+        """
+        k = int(torch.searchsorted(self.edge_index[1], torch.tensor(n, device=self.edge_index.device)))
+        return Graph(self.edge_index[:, :k], self.rel[:k], self.dist[:k], self.radius)
+
+    @property
+    def geometry(self) -> tuple[Tensor, Tensor]:
+        """``(rel, dist)``, the ``geometry`` keyword of :mod:`lagfluid.physics.operators`."""
+        return self.rel, self.dist
 
 
 class VerletNeighborList:

@@ -27,8 +27,7 @@ class ExactAdvection:
         nf, params = ctx.n_fluid, ctx.params
         acc = torch.as_tensor(params.gravity, dtype=pos.dtype, device=pos.device).expand(nf, 3).clone()
         if params.viscosity > 0:
-            g = ctx.graph(pos, ctx.settings.re_laplacian)
-            g = g.select(g.edge_index[1] < nf)
+            g = ctx.graph(pos, ctx.settings.re_laplacian).into_first(nf)
             with ctx.timer("advection", pos.device):
                 lap = ops.laplacian(
                     pos,
@@ -38,9 +37,10 @@ class ExactAdvection:
                     ctx.constants.n0_lap,
                     ctx.constants.lam,
                     dim=params.dim,
-                    num_nodes=pos.shape[0],
+                    num_nodes=nf,
+                    geometry=g.geometry,
                 )
-                acc += params.viscosity * lap[:nf]
+                acc += params.viscosity * lap
         return acc
 
 
@@ -91,13 +91,22 @@ class ExactPressure:
         n_all, ptype = pos.shape[0], ctx.state.ptype
         g_lap = ctx.graph(pos, s.re_laplacian)
         with ctx.timer("pressure_assembly", pos.device):
-            g_n = g_lap.within(ctx.radius(s.re_density))
-            n = ops.number_density(pos, g_n.edge_index, ctx.radius(s.re_density), num_nodes=n_all)
+            g_n = ctx.graph(pos, s.re_density)
+            n = ops.number_density(
+                pos, g_n.edge_index, ctx.radius(s.re_density), num_nodes=n_all, geometry=g_n.geometry
+            )
             surface = n < s.surface_beta * c.n0
             solve_mask = (ptype != ParticleType.DUMMY) & ~surface
-            g_div = g_lap.within(ctx.radius(s.re_gradient))
+            g_div = ctx.graph(pos, s.re_gradient)
             div = ops.divergence(
-                pos, g_div.edge_index, vel, ctx.radius(s.re_gradient), c.n0, dim=params.dim, num_nodes=n_all
+                pos,
+                g_div.edge_index,
+                vel,
+                ctx.radius(s.re_gradient),
+                c.n0,
+                dim=params.dim,
+                num_nodes=n_all,
+                geometry=g_div.geometry,
             )
             b = ppe_source(
                 div, n, c.n0, params.dt, gamma_div=s.source_divergence, gamma_density=s.source_density

@@ -59,16 +59,27 @@ def kernel(dist: Tensor, re: float) -> Tensor:
     return torch.where(valid, re / safe - 1.0, torch.zeros_like(dist))
 
 
-def edge_geometry(pos: Tensor, edge_index: Tensor) -> tuple[Tensor, Tensor]:
+Geometry = tuple[Tensor, Tensor]
+"""``(rel (E, 3), dist (E,))`` of a graph, as :func:`edge_geometry` returns them."""
+
+
+def edge_geometry(pos: Tensor, edge_index: Tensor, geometry: Geometry | None = None) -> Geometry:
     """Relative positions and distances of the edges.
+
+    Every operator takes an optional ``geometry`` keyword: a caller that already holds ``rel`` and ``dist``
+    of its graph (the solver does, from its neighbour list) passes them in, and the operator skips the
+    gather of ``pos`` over all edges (measured: ~10 ms per call at 4k fluid particles, 80k edges per ms).
 
     Args:
         pos: positions, shape (N, 3).
         edge_index: (2, E) int64, ``[j, i]`` = [source, target].
+        geometry: precomputed ``(rel, dist)`` of exactly these edges; returned as is when given.
 
     Returns:
         ``rel = x_j - x_i``, shape (E, 3), and ``dist = |x_j - x_i|``, shape (E,).
     """
+    if geometry is not None:
+        return geometry
     src, dst = edge_index[0], edge_index[1]
     rel = pos[src] - pos[dst]
     return rel, torch.linalg.vector_norm(rel, dim=-1)
@@ -84,15 +95,22 @@ def _scatter_sum(msg: Tensor, index: Tensor, num_nodes: int) -> Tensor:
     return out.index_add(0, index, msg)
 
 
-def _gradient_terms(pos: Tensor, edge_index: Tensor, re: float) -> Tensor:
+def _gradient_terms(pos: Tensor, edge_index: Tensor, re: float, geometry: Geometry | None = None) -> Tensor:
     """Per-edge vectors ``(x_j - x_i) / r_ij^2 * w_ij``, shape (E, 3)."""
-    rel, dist = edge_geometry(pos, edge_index)
+    rel, dist = edge_geometry(pos, edge_index, geometry)
     w = kernel(dist, re)
     # w is 0 wherever dist <= 1e-8, so the clamp only keeps 0 / 0 out of the product.
     return rel * (w / dist.clamp_min(_R_MIN).square()).unsqueeze(-1)
 
 
-def number_density(pos: Tensor, edge_index: Tensor, re: float, num_nodes: int | None = None) -> Tensor:
+def number_density(
+    pos: Tensor,
+    edge_index: Tensor,
+    re: float,
+    num_nodes: int | None = None,
+    *,
+    geometry: Geometry | None = None,
+) -> Tensor:
     """MPS particle number density.
 
     ``n_i = sum_{j != i} w(r_ij)``.
@@ -102,11 +120,12 @@ def number_density(pos: Tensor, edge_index: Tensor, re: float, num_nodes: int | 
         edge_index: (2, E) int64, ``[j, i]``.
         re: kernel radius, metres.
         num_nodes: number of output rows (default ``N``).
+        geometry: optional precomputed ``(rel, dist)`` of these edges (see :func:`edge_geometry`).
 
     Returns:
         Number densities, shape (N,). Rows without incoming edges are 0.
     """
-    _, dist = edge_geometry(pos, edge_index)
+    _, dist = edge_geometry(pos, edge_index, geometry)
     return _scatter_sum(kernel(dist, re), edge_index[1], _num_nodes(pos, num_nodes))
 
 
@@ -146,7 +165,13 @@ def reference_density(n: Tensor, mask: Tensor | None = None) -> Tensor:
 
 
 def laplacian_lambda(
-    pos: Tensor, edge_index: Tensor, re: float, mask: Tensor | None = None, num_nodes: int | None = None
+    pos: Tensor,
+    edge_index: Tensor,
+    re: float,
+    mask: Tensor | None = None,
+    num_nodes: int | None = None,
+    *,
+    geometry: Geometry | None = None,
 ) -> tuple[Tensor, Tensor]:
     """Number density and ``lambda`` of the Laplacian model, at the densest masked particle.
 
@@ -163,6 +188,7 @@ def laplacian_lambda(
         re: Laplacian kernel radius, metres.
         mask: bool (N,), candidate particles (``None``: all), typically the initial fluid.
         num_nodes: number of particles (default ``N``).
+        geometry: optional precomputed ``(rel, dist)`` of these edges (see :func:`edge_geometry`).
 
     Returns:
         ``(n0_lap, lam)``: two 0-dim tensors (dtype and device of ``pos``); ``lam`` is in m^2.
@@ -170,7 +196,7 @@ def laplacian_lambda(
     Raises:
         ValueError: when the mask selects no particle or the densest one has no neighbour.
     """
-    _, dist = edge_geometry(pos, edge_index)
+    _, dist = edge_geometry(pos, edge_index, geometry)
     w = kernel(dist, re)
     size = _num_nodes(pos, num_nodes)
     n = _scatter_sum(w, edge_index[1], size)
@@ -190,6 +216,8 @@ def gradient(
     n0: float | Tensor,
     dim: int = 3,
     num_nodes: int | None = None,
+    *,
+    geometry: Geometry | None = None,
 ) -> Tensor:
     """MPS gradient of a scalar field.
 
@@ -204,12 +232,13 @@ def gradient(
         n0: reference number density at radius ``re``.
         dim: spatial dimension ``d``.
         num_nodes: number of output rows (default ``N``).
+        geometry: optional precomputed ``(rel, dist)`` of these edges (see :func:`edge_geometry`).
 
     Returns:
         Gradient, shape (N, 3). Rows without incoming edges are 0.
     """
     src, dst = edge_index[0], edge_index[1]
-    terms = _gradient_terms(pos, edge_index, re) * (values[src] - values[dst]).unsqueeze(-1)
+    terms = _gradient_terms(pos, edge_index, re, geometry) * (values[src] - values[dst]).unsqueeze(-1)
     return _scatter_sum(terms, dst, _num_nodes(pos, num_nodes)) * (dim / n0)
 
 
@@ -222,6 +251,8 @@ def min_pressure_gradient(
     dim: int = 3,
     include_self: bool = True,
     num_nodes: int | None = None,
+    *,
+    geometry: Geometry | None = None,
 ) -> Tensor:
     """Stabilised MPS pressure gradient with the neighbourhood minimum pressure (Koshizuka & Oka).
 
@@ -247,6 +278,7 @@ def min_pressure_gradient(
         dim: spatial dimension ``d``.
         include_self: include ``p_i`` in the neighbourhood minimum.
         num_nodes: number of output rows (default ``N``).
+        geometry: optional precomputed ``(rel, dist)`` of these edges (see :func:`edge_geometry`).
 
     Returns:
         Gradient, shape (N, 3). Rows without incoming edges are 0.
@@ -255,7 +287,7 @@ def min_pressure_gradient(
     size = _num_nodes(pos, num_nodes)
     # Rows that receive no edge keep p_i; with include_self=False the others take min_j p_j only.
     p_min = pressure.scatter_reduce(0, dst, pressure[src], reduce="amin", include_self=include_self)
-    terms = _gradient_terms(pos, edge_index, re) * (pressure[src] - p_min[dst]).unsqueeze(-1)
+    terms = _gradient_terms(pos, edge_index, re, geometry) * (pressure[src] - p_min[dst]).unsqueeze(-1)
     return _scatter_sum(terms, dst, size) * (dim / n0)
 
 
@@ -267,6 +299,8 @@ def divergence(
     n0: float | Tensor,
     dim: int = 3,
     num_nodes: int | None = None,
+    *,
+    geometry: Geometry | None = None,
 ) -> Tensor:
     """MPS divergence of a vector field.
 
@@ -283,12 +317,13 @@ def divergence(
         n0: reference number density at radius ``re``.
         dim: spatial dimension ``d``.
         num_nodes: number of output rows (default ``N``).
+        geometry: optional precomputed ``(rel, dist)`` of these edges (see :func:`edge_geometry`).
 
     Returns:
         Divergence, shape (N,). Rows without incoming edges are 0.
     """
     src, dst = edge_index[0], edge_index[1]
-    terms = (_gradient_terms(pos, edge_index, re) * (vel[src] - vel[dst])).sum(dim=-1)
+    terms = (_gradient_terms(pos, edge_index, re, geometry) * (vel[src] - vel[dst])).sum(dim=-1)
     return _scatter_sum(terms, dst, _num_nodes(pos, num_nodes)) * (dim / n0)
 
 
@@ -323,6 +358,8 @@ def laplacian(
     lam: float | Tensor,
     dim: int = 3,
     num_nodes: int | None = None,
+    *,
+    geometry: Geometry | None = None,
 ) -> Tensor:
     """MPS Laplacian model.
 
@@ -339,12 +376,13 @@ def laplacian(
         lam: ``lambda`` of the Laplacian model, m^2.
         dim: spatial dimension ``d``.
         num_nodes: number of output rows (default ``N``).
+        geometry: optional precomputed ``(rel, dist)`` of these edges (see :func:`edge_geometry`).
 
     Returns:
         Laplacian, same trailing shape as ``values``: (N,) or (N, C). Rows without incoming edges are 0.
     """
     src, dst = edge_index[0], edge_index[1]
-    _, dist = edge_geometry(pos, edge_index)
+    _, dist = edge_geometry(pos, edge_index, geometry)
     coef = laplacian_weights(dist, re, n0_lap, lam, dim)
     diff = values[src] - values[dst]
     terms = diff * coef.view(-1, *([1] * (diff.dim() - 1)))

@@ -191,6 +191,7 @@ class StepContext:
     timer: StageTimer
     info: dict[str, float] = field(default_factory=dict)
     _full: tuple[Tensor, tuple[int, int], Graph] | None = None
+    _within: dict[float, Graph] = field(default_factory=dict)
 
     @property
     def params(self) -> SceneParams:
@@ -220,7 +221,9 @@ class StepContext:
             if self._full is not None:
                 old_pos, old_key, full = self._full
                 if old_key == key:
-                    return full.within(radius)
+                    if radius not in self._within:  # stages at one set of positions share sub-graphs
+                        self._within[radius] = full.within(radius)
+                    return self._within[radius]
                 nf = self.n_fluid
                 moved = float((pos[:nf] - old_pos[:nf]).norm(dim=1).max()) if nf else 0.0
                 if radius + 2.0 * moved < full.radius:
@@ -230,7 +233,8 @@ class StepContext:
                     return Graph(near.edge_index[:, keep], rel[keep], dist[keep], radius)
             full = self.neighbors.graph(pos, self.state.ptype, self.neighbors.cutoff)
             self._full = (pos.clone(), key, full)
-            return full.within(radius)
+            self._within = {radius: full.within(radius)}
+            return self._within[radius]
 
 
 class AdvectionStage(Protocol):
@@ -363,9 +367,8 @@ class SplitStepSimulator:
         their p = 0 as the neighbourhood minimum.
         """
         nf = ctx.n_fluid
-        g = ctx.graph(pos, self.settings.re_gradient)
-        src, dst = g.edge_index
-        g = g.select((dst < nf) & (ctx.state.ptype[src] != ParticleType.DUMMY))
+        g = ctx.graph(pos, self.settings.re_gradient).into_first(nf)
+        g = g.select(ctx.state.ptype[g.edge_index[0]] != ParticleType.DUMMY)
         grad = ops.min_pressure_gradient(
             pos,
             g.edge_index,
@@ -373,6 +376,7 @@ class SplitStepSimulator:
             ctx.radius(self.settings.re_gradient),
             self.constants.n0,
             dim=ctx.params.dim,
-            num_nodes=pos.shape[0],
+            num_nodes=nf,
+            geometry=g.geometry,
         )
-        return -grad[:nf] / ctx.params.density
+        return -grad / ctx.params.density
