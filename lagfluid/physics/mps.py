@@ -135,6 +135,7 @@ class ExactPressure:
                 method=s.ppe_method,
             )
             pressure = system.scatter(torch.as_tensor(p, device=pos.device).to(pos.dtype))
+        ctx.record(number_density=n, free_surface=surface, ppe_solved=solve_mask)
         ctx.info.update(
             ppe_iterations=float(info.iterations),
             ppe_residual=float(info.residual),

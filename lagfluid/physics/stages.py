@@ -182,6 +182,8 @@ class StepContext:
         neighbors: the Verlet list; ask it for graphs through :meth:`graph`.
         timer: per-stage timings of this step.
         info: per-step diagnostics a stage wants reported (PPE iterations, residual, ...).
+        fields: per-particle arrays of the step, filled only when the simulator records intermediates
+            (dataset generation); stages add theirs with :meth:`record`.
     """
 
     state: ParticleState
@@ -190,6 +192,7 @@ class StepContext:
     neighbors: VerletNeighborList
     timer: StageTimer
     info: dict[str, float] = field(default_factory=dict)
+    fields: dict[str, Tensor] | None = None
     _full: tuple[Tensor, tuple[int, int], Graph] | None = None
     _within: dict[float, Graph] = field(default_factory=dict)
 
@@ -206,6 +209,11 @@ class StepContext:
     def radius(self, factor: float) -> float:
         """A radius given in l0, in metres."""
         return factor * self.params.l0
+
+    def record(self, **arrays: Tensor) -> None:
+        """Keep per-particle arrays of this step when intermediates are being recorded (else no-op)."""
+        if self.fields is not None:
+            self.fields.update({k: v.detach().clone() for k, v in arrays.items()})
 
     def graph(self, pos: Tensor, factor: float) -> Graph:
         """All pairs within ``factor * l0`` at positions ``pos`` (N, 3); targets: fluid and near-fluid walls.
@@ -287,6 +295,8 @@ class SplitStepSimulator:
         self.neighbors: VerletNeighborList | None = None
         self.timer = StageTimer()
         self.last_info: dict[str, float] = {}
+        self.record_intermediates = False
+        self.last_fields: dict[str, Tensor] = {}
 
     # ------------------------------------------------------------------ Simulator interface
     def reset(self, state: ParticleState) -> None:
@@ -314,11 +324,25 @@ class SplitStepSimulator:
 
     @torch.no_grad()
     def step(self, state: ParticleState) -> ParticleState:
-        """Advance ``state`` by one time step ``state.params.dt``; returns a new state."""
+        """Advance ``state`` by one time step ``state.params.dt``; returns a new state.
+
+        With ``record_intermediates = True`` the step also leaves the intermediate fields in
+        ``last_fields``: ``advection_acceleration``, ``pos_star``, ``vel_star``, ``pos_collided``,
+        ``vel_collided`` (N_fluid, ...) and, from the exact pressure stage, ``number_density``,
+        ``free_surface``, ``ppe_solved`` (N,) and ``pressure_unclamped`` (N,). These are the inputs and
+        labels of the one-step training samples (paper A.2).
+        """
         if self.constants is None or self.neighbors is None:
             self.reset(state)
         self.timer.reset()
-        ctx = StepContext(state, self.settings, self.constants, self.neighbors, self.timer)
+        ctx = StepContext(
+            state,
+            self.settings,
+            self.constants,
+            self.neighbors,
+            self.timer,
+            fields={} if self.record_intermediates else None,
+        )
         nf, dt, device = state.n_fluid, state.params.dt, state.device
         pos, vel = state.pos.clone(), state.vel.clone()
 
@@ -327,8 +351,10 @@ class SplitStepSimulator:
             with self.timer("advection", device):
                 vel[:nf] += acc * dt
                 pos[:nf] += vel[:nf] * dt
+            ctx.record(advection_acceleration=acc)
         else:
             pos[:nf] += vel[:nf] * dt
+        ctx.record(pos_star=pos[:nf], vel_star=vel[:nf])
 
         if self.collision is not None:
             v_star = vel[:nf].clone()
@@ -336,10 +362,12 @@ class SplitStepSimulator:
             with self.timer("collision", device):
                 vel[:nf] = v_new
                 pos[:nf] += (v_new - v_star) * dt
+        ctx.record(pos_collided=pos[:nf], vel_collided=vel[:nf])
 
         pressure = torch.zeros_like(state.pressure)
         if self.pressure is not None:
             pressure = self.pressure(ctx, pos, vel)
+            ctx.record(pressure_unclamped=pressure)
             with self.timer("correction", device):
                 if self.settings.clamp_negative_pressure:
                     pressure = pressure.clamp_min(0.0)
@@ -348,6 +376,7 @@ class SplitStepSimulator:
                 pos[:nf] += acc_p * dt * dt
 
         self.last_info = dict(ctx.info)
+        self.last_fields = ctx.fields or {}
         return ParticleState(
             pos=pos,
             vel=vel,
