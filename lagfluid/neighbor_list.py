@@ -48,12 +48,20 @@ class Graph:
             raise ValueError(f"cannot restrict a graph of radius {self.radius} to a larger radius {radius}")
         if radius >= self.radius:  # every edge already qualifies: no pass over the edges
             return self
-        keep = self.dist < radius
-        return Graph(self.edge_index[:, keep], self.rel[keep], self.dist[keep], radius)
+        return self._take(torch.nonzero(self.dist < radius).flatten(), radius)
 
     def select(self, keep: Tensor) -> Graph:
         """Sub-graph of the edges where the (E,) bool mask ``keep`` is True."""
-        return Graph(self.edge_index[:, keep], self.rel[keep], self.dist[keep], self.radius)
+        return self._take(torch.nonzero(keep).flatten(), self.radius)
+
+    def _take(self, index: Tensor, radius: float) -> Graph:
+        # nonzero + index_select rather than boolean indexing: ~2x faster on the CPU for (E, 3) arrays.
+        return Graph(
+            self.edge_index.index_select(1, index),
+            self.rel.index_select(0, index),
+            self.dist.index_select(0, index),
+            radius,
+        )
 
     def into_first(self, n: int) -> Graph:
         """Sub-graph of the edges whose target is one of particles ``0 .. n-1`` (e.g. the fluid).
@@ -85,6 +93,7 @@ class VerletNeighborList:
         self.skin = float(skin)
         self.backend = backend
         self.candidates: Tensor | None = None
+        self._fluid_prefix = 0  # candidates[:, :_fluid_prefix] are the pairs into fluid particles
         self._built_at: Tensor | None = None
         self.builds = 0
 
@@ -129,16 +138,24 @@ class VerletNeighborList:
             self.candidates = torch.cat([into_fluid, into_walls], dim=1)
         else:
             self.candidates = into_fluid
+        self._fluid_prefix = into_fluid.shape[1]
         self._built_at = pos[:n_fluid].clone()
         self.builds += 1
         log.debug("neighbour list rebuilt: %d candidate pairs", self.candidates.shape[1])
         return True
 
-    def graph(self, pos: Tensor, ptype: Tensor, radius: float) -> Graph:
+    def graph(self, pos: Tensor, ptype: Tensor, radius: float, fluid_targets_only: bool = False) -> Graph:
         """Every pair within ``radius`` at positions ``pos`` (N, 3), from the candidate list.
 
         Rebuilds the list first when the fluid has moved too far since the last build, so the answer is
         exact at any positions (``x^n``, ``x*``, ``x**`` of one step alike).
+
+        Args:
+            pos: (N, 3) positions, fluid rows first.
+            ptype: (N,) particle types.
+            radius: metres, at most ``cutoff``.
+            fluid_targets_only: only edges into fluid particles (a prefix of the candidates, so the
+                wall rows cost nothing when a stage does not need them).
 
         Raises:
             ValueError: ``radius`` exceeds the list's cutoff.
@@ -146,6 +163,10 @@ class VerletNeighborList:
         if radius > self.cutoff * (1 + 1e-12):
             raise ValueError(f"radius {radius} exceeds the neighbour list cutoff {self.cutoff}")
         self.update(pos, ptype)
-        rel, dist = edge_vectors(pos, self.candidates)
-        keep = dist < radius
-        return Graph(self.candidates[:, keep], rel[keep], dist[keep], radius)
+        candidates = self.candidates[:, : self._fluid_prefix] if fluid_targets_only else self.candidates
+        rel, dist = edge_vectors(pos, candidates)
+        keep = torch.nonzero(dist < radius).flatten()
+        # nonzero + index_select rather than boolean indexing: ~2x faster on the CPU for (E, 3) arrays.
+        return Graph(
+            candidates.index_select(1, keep), rel.index_select(0, keep), dist.index_select(0, keep), radius
+        )

@@ -141,3 +141,26 @@ def test_recorded_intermediates_invert_the_update_exactly():
     sim.record_intermediates = False
     sim.step(new)
     assert sim.last_fields == {}
+
+
+@pytest.mark.parametrize("fluid_only", [False, True])
+def test_step_context_graphs_equal_brute_force_at_moved_positions(fluid_only):
+    from lagfluid.physics.stages import StageTimer, StepContext
+
+    state = build_scene("dam", fluid_size=[6, 6, 8], tank_size=[15, 8])
+    sim = mps()
+    sim.reset(state)
+    ctx = StepContext(state, sim.settings, sim.constants, sim.neighbors, StageTimer())
+    gen = torch.Generator().manual_seed(1)
+    pos = state.pos.clone()
+    for factor, shift in [(3.1, 0.0), (2.1, 0.0), (0.92, 0.003), (2.1, 0.003), (3.1, 0.02), (0.92, 0.0)]:
+        pos[: state.n_fluid] += shift * torch.randn(state.n_fluid, 3, generator=gen, dtype=pos.dtype)
+        g = ctx.graph(pos, factor, fluid_targets_only=fluid_only)
+        targets = torch.zeros(len(pos), dtype=torch.bool)
+        if fluid_only:
+            targets[: state.n_fluid] = True
+        else:  # the receivers of the candidate list in force (fluid + walls within reach of the fluid)
+            targets[torch.unique(sim.neighbors.candidates[1])] = True
+        ref = radius_graph(pos, factor * 0.05, receivers=targets, backend="brute")
+        assert torch.equal(g.edge_index, ref), (factor, shift)
+        torch.testing.assert_close(g.dist, (pos[ref[0]] - pos[ref[1]]).norm(dim=1))

@@ -27,7 +27,7 @@ class ExactAdvection:
         nf, params = ctx.n_fluid, ctx.params
         acc = torch.as_tensor(params.gravity, dtype=pos.dtype, device=pos.device).expand(nf, 3).clone()
         if params.viscosity > 0:
-            g = ctx.graph(pos, ctx.settings.re_laplacian).into_first(nf)
+            g = ctx.graph(pos, ctx.settings.re_laplacian, fluid_targets_only=True)
             with ctx.timer("advection", pos.device):
                 lap = ops.laplacian(
                     pos,
@@ -58,10 +58,10 @@ class CollisionRule:
     def __call__(self, ctx: StepContext, pos: Tensor, vel: Tensor) -> Tensor:
         """Corrected fluid velocities (N_fluid, 3) at ``(x*, v*)``."""
         nf = ctx.n_fluid
-        g = ctx.graph(pos, ctx.settings.re_collision)
+        g = ctx.graph(pos, ctx.settings.re_collision, fluid_targets_only=True)
         with ctx.timer("collision", pos.device):
             src, dst = g.edge_index
-            keep = (dst < nf) & (ctx.state.ptype[src] != ParticleType.DUMMY)
+            keep = ctx.state.ptype[src] != ParticleType.DUMMY
             v_new = vel[:nf].clone()
             if not bool(keep.any()):  # nothing is close enough: no collision work at all
                 ctx.info["collisions"] = 0.0

@@ -193,8 +193,8 @@ class StepContext:
     timer: StageTimer
     info: dict[str, float] = field(default_factory=dict)
     fields: dict[str, Tensor] | None = None
-    _full: tuple[Tensor, tuple[int, int], Graph] | None = None
-    _within: dict[float, Graph] = field(default_factory=dict)
+    _full: tuple[Tensor, tuple[int, int], Graph, bool] | None = None
+    _within: dict[tuple[float, bool], Graph] = field(default_factory=dict)
 
     @property
     def params(self) -> SceneParams:
@@ -215,8 +215,11 @@ class StepContext:
         if self.fields is not None:
             self.fields.update({k: v.detach().clone() for k, v in arrays.items()})
 
-    def graph(self, pos: Tensor, factor: float) -> Graph:
-        """All pairs within ``factor * l0`` at positions ``pos`` (N, 3); targets: fluid and near-fluid walls.
+    def graph(self, pos: Tensor, factor: float, fluid_targets_only: bool = False) -> Graph:
+        """All pairs within ``factor * l0`` at positions ``pos`` (N, 3), sorted by target.
+
+        Targets are the fluid particles and the walls within reach of the fluid, or only the fluid with
+        ``fluid_targets_only`` (then the wall rows cost nothing).
 
         Exact, and cheap when possible: a graph at the full cutoff is filtered from the Verlet list once per
         set of positions and kept; a smaller radius ``r`` at *nearby* positions (every fluid particle moved
@@ -224,25 +227,29 @@ class StepContext:
         distances, so the collision graph at ``x*`` costs a fraction of a full pass.
         """
         radius = self.radius(factor)
+        nf = self.n_fluid
         with self.timer("neighbors", pos.device):
             key = (pos.data_ptr(), pos._version)
             if self._full is not None:
-                old_pos, old_key, full = self._full
-                if old_key == key:
-                    if radius not in self._within:  # stages at one set of positions share sub-graphs
-                        self._within[radius] = full.within(radius)
-                    return self._within[radius]
-                nf = self.n_fluid
+                old_pos, old_key, full, full_fluid_only = self._full
+                usable = full_fluid_only <= fluid_targets_only  # an all-target graph serves both requests
+                if old_key == key and usable:
+                    cache_key = (radius, fluid_targets_only)
+                    if cache_key not in self._within:  # stages at one set of positions share sub-graphs
+                        sub = full.into_first(nf) if fluid_targets_only and not full_fluid_only else full
+                        self._within[cache_key] = sub.within(radius)
+                    return self._within[cache_key]
                 moved = float((pos[:nf] - old_pos[:nf]).norm(dim=1).max()) if nf else 0.0
-                if radius + 2.0 * moved < full.radius:
-                    near = full.within(radius + 2.0 * moved)
+                if usable and radius + 2.0 * moved < full.radius:
+                    near = full.into_first(nf) if fluid_targets_only else full
+                    near = near.within(radius + 2.0 * moved)
                     rel, dist = edge_vectors(pos, near.edge_index)
-                    keep = dist < radius
-                    return Graph(near.edge_index[:, keep], rel[keep], dist[keep], radius)
-            full = self.neighbors.graph(pos, self.state.ptype, self.neighbors.cutoff)
-            self._full = (pos.clone(), key, full)
-            self._within = {radius: full.within(radius)}
-            return self._within[radius]
+                    # each end moved at most `moved`: the new distances are below near.radius + 2 moved
+                    return Graph(near.edge_index, rel, dist, near.radius + 2.0 * moved).within(radius)
+            full = self.neighbors.graph(pos, self.state.ptype, self.neighbors.cutoff, fluid_targets_only)
+            self._full = (pos.clone(), key, full, fluid_targets_only)
+            self._within = {(radius, fluid_targets_only): full.within(radius)}
+            return self._within[(radius, fluid_targets_only)]
 
 
 class AdvectionStage(Protocol):
@@ -396,7 +403,7 @@ class SplitStepSimulator:
         their p = 0 as the neighbourhood minimum.
         """
         nf = ctx.n_fluid
-        g = ctx.graph(pos, self.settings.re_gradient).into_first(nf)
+        g = ctx.graph(pos, self.settings.re_gradient, fluid_targets_only=True)
         g = g.select(ctx.state.ptype[g.edge_index[0]] != ParticleType.DUMMY)
         grad = ops.min_pressure_gradient(
             pos,
