@@ -239,6 +239,8 @@ def _timing_summary(record: dict[str, Any]) -> dict[str, Any]:
 def simulate(cfg: DictConfig) -> dict[str, Any]:
     """``task=simulate``: roll out ``cfg.model`` on ``cfg.scene`` and write the three output files."""
     torch.manual_seed(int(cfg.seed))
+    if cfg.threads:
+        torch.set_num_threads(int(cfg.threads))
     out_dir = Path(cfg.out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     state = build_initial_state(cfg)

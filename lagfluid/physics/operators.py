@@ -81,7 +81,7 @@ def edge_geometry(pos: Tensor, edge_index: Tensor, geometry: Geometry | None = N
     if geometry is not None:
         return geometry
     src, dst = edge_index[0], edge_index[1]
-    rel = pos[src] - pos[dst]
+    rel = pos.index_select(0, src) - pos.index_select(0, dst)
     return rel, torch.linalg.vector_norm(rel, dim=-1)
 
 
@@ -238,7 +238,9 @@ def gradient(
         Gradient, shape (N, 3). Rows without incoming edges are 0.
     """
     src, dst = edge_index[0], edge_index[1]
-    terms = _gradient_terms(pos, edge_index, re, geometry) * (values[src] - values[dst]).unsqueeze(-1)
+    terms = _gradient_terms(pos, edge_index, re, geometry) * (
+        values.index_select(0, src) - values.index_select(0, dst)
+    ).unsqueeze(-1)
     return _scatter_sum(terms, dst, _num_nodes(pos, num_nodes)) * (dim / n0)
 
 
@@ -286,8 +288,12 @@ def min_pressure_gradient(
     src, dst = edge_index[0], edge_index[1]
     size = _num_nodes(pos, num_nodes)
     # Rows that receive no edge keep p_i; with include_self=False the others take min_j p_j only.
-    p_min = pressure.scatter_reduce(0, dst, pressure[src], reduce="amin", include_self=include_self)
-    terms = _gradient_terms(pos, edge_index, re, geometry) * (pressure[src] - p_min[dst]).unsqueeze(-1)
+    p_min = pressure.scatter_reduce(
+        0, dst, pressure.index_select(0, src), reduce="amin", include_self=include_self
+    )
+    terms = _gradient_terms(pos, edge_index, re, geometry) * (
+        pressure.index_select(0, src) - p_min.index_select(0, dst)
+    ).unsqueeze(-1)
     return _scatter_sum(terms, dst, size) * (dim / n0)
 
 
@@ -323,7 +329,9 @@ def divergence(
         Divergence, shape (N,). Rows without incoming edges are 0.
     """
     src, dst = edge_index[0], edge_index[1]
-    terms = (_gradient_terms(pos, edge_index, re, geometry) * (vel[src] - vel[dst])).sum(dim=-1)
+    terms = (
+        _gradient_terms(pos, edge_index, re, geometry) * (vel.index_select(0, src) - vel.index_select(0, dst))
+    ).sum(dim=-1)
     return _scatter_sum(terms, dst, _num_nodes(pos, num_nodes)) * (dim / n0)
 
 
@@ -384,6 +392,6 @@ def laplacian(
     src, dst = edge_index[0], edge_index[1]
     _, dist = edge_geometry(pos, edge_index, geometry)
     coef = laplacian_weights(dist, re, n0_lap, lam, dim)
-    diff = values[src] - values[dst]
+    diff = values.index_select(0, src) - values.index_select(0, dst)
     terms = diff * coef.view(-1, *([1] * (diff.dim() - 1)))
     return _scatter_sum(terms, dst, _num_nodes(pos, num_nodes))

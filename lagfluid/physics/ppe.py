@@ -240,12 +240,16 @@ def assemble_ppe(
     index = torch.nonzero(solve_mask).flatten()
     k = int(index.numel())
     pos_of = torch.full((n,), -1, dtype=torch.long, device=device)
-    pos_of[index] = torch.arange(k, device=device)
+    pos_of.index_copy_(0, index, torch.arange(k, device=device))
 
     # Keep edges into solved particles; zero weights (r == re exactly) couple nothing.
-    sel = torch.nonzero(solve_mask[edge_index[1]] & (coef > 0)).flatten()
-    src, rows_all, c = edge_index[0, sel], pos_of[edge_index[1, sel]], coef[sel] * (1.0 / float(density))
-    src_solved, src_dirichlet = solve_mask[src], dirichlet_mask[src]
+    # index_select rather than x[idx] throughout: advanced indexing is ~3x slower on the CPU (measured:
+    # it was half of this function's time at 780k edges).
+    sel = torch.nonzero(solve_mask.index_select(0, edge_index[1]) & (coef > 0)).flatten()
+    src = edge_index[0].index_select(0, sel)
+    rows_all = pos_of.index_select(0, edge_index[1].index_select(0, sel))
+    c = coef.index_select(0, sel) * (1.0 / float(density))
+    src_solved, src_dirichlet = solve_mask.index_select(0, src), dirichlet_mask.index_select(0, src)
     # Diagonal: every solved or free-surface neighbour (dummy neighbours take no part).
     diag = torch.zeros(k, dtype=dtype, device=device)
     diag.index_add_(0, rows_all, torch.where(src_solved | src_dirichlet, c, torch.zeros_like(c)))
@@ -255,7 +259,9 @@ def assemble_ppe(
     coupled = coupled > 0
 
     off_sel = torch.nonzero(src_solved).flatten()
-    rows, cols, off = rows_all[off_sel], pos_of[src[off_sel]], -c[off_sel]
+    rows = rows_all.index_select(0, off_sel)
+    cols = pos_of.index_select(0, src.index_select(0, off_sel))
+    off = -c.index_select(0, off_sel)
     # Symmetry of the solved-solved edge set (cheap necessary check: in-degree == out-degree).
     if rows.numel() and not torch.equal(torch.bincount(rows, minlength=k), torch.bincount(cols, minlength=k)):
         raise ValueError(
@@ -369,8 +375,10 @@ def _csr_with_diagonal(
     nnz = rows.numel() + k
     col = torch.empty(nnz, dtype=torch.long, device=device)
     val = torch.empty(nnz, dtype=diag.dtype, device=device)
-    col[pos_off], val[pos_off] = cols, off
-    col[pos_diag], val[pos_diag] = torch.arange(k, device=device), diag
+    col.index_copy_(0, pos_off, cols)
+    val.index_copy_(0, pos_off, off)
+    col.index_copy_(0, pos_diag, torch.arange(k, device=device))
+    val.index_copy_(0, pos_diag, diag)
     return crow, col, val, pos_diag
 
 

@@ -404,7 +404,7 @@ class SplitStepSimulator:
         """
         nf = ctx.n_fluid
         g = ctx.graph(pos, self.settings.re_gradient, fluid_targets_only=True)
-        g = g.select(ctx.state.ptype[g.edge_index[0]] != ParticleType.DUMMY)
+        g = g.select(ctx.state.ptype.index_select(0, g.edge_index[0]) != ParticleType.DUMMY)
         grad = ops.min_pressure_gradient(
             pos,
             g.edge_index,
