@@ -86,3 +86,43 @@ def test_debug_experiment_writes_the_three_outputs(tmp_path):
     traj = read_trajectory(tmp_path / "rollout.h5")
     assert traj["position"].shape[0] == 3  # frames 0, 2, 4
     assert traj["attrs"]["dt"] == cfg.scene.params.dt and "n0" in traj["attrs"]
+
+
+def test_guard_stop_keeps_what_was_written_and_says_why(tmp_path):
+    from lagfluid.data.store import read_trajectory
+    from lagfluid.errors import RolloutError
+    from lagfluid.rollout import simulate
+
+    # dt = 0.05 s: after two steps of free fall |v| dt / l0 > 0.5, so the Courant guard fires.
+    cfg = _compose("experiment=debug", "dt=0.05", "steps=10", f"out_dir={tmp_path}")
+    with pytest.raises(RolloutError, match=r"step \d+: Courant number"):
+        simulate(cfg)
+    traj = read_trajectory(tmp_path / "rollout.h5")
+    assert not bool(traj["attrs"]["complete"]) and "Courant" in traj["attrs"]["stop_reason"]
+    assert 1 <= traj["position"].shape[0] < 11
+    saved = json.loads((tmp_path / "metrics.json").read_text())
+    assert saved["complete"] is False and "Courant" in saved["stop_reason"] and saved["steps"] < 10
+    assert (tmp_path / "preview.png").is_file()
+
+
+def test_cli_guard_stop_is_one_clear_line(tmp_path):
+    out = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "lagfluid.run",
+            "experiment=debug",
+            "dt=0.05",
+            "steps=10",
+            f"out_dir={tmp_path}",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env={**__import__("os").environ, "OMP_NUM_THREADS": "1"},
+    )
+    assert out.returncode == 1
+    console = out.stdout + out.stderr  # Hydra logs to stdout; tqdm and warnings go to stderr
+    errors = [line for line in console.splitlines() if "ERROR" in line]
+    assert len(errors) == 1 and "Courant number" in errors[0] and "reduce dt" in errors[0]
+    assert "Traceback" not in console
