@@ -30,11 +30,18 @@ def preview(
     """
     a, b = axes
     pmax = max(float(np.nanmax(p)) if p.size else 0.0 for _, _, p in frames) or 1.0
-    fig, panels = plt.subplots(1, len(frames), figsize=(4.2 * len(frames), 3.6), squeeze=False)
-    bnd = boundary_position[:: max(1, len(boundary_position) // 20000)]
+    fig, panels = plt.subplots(
+        1, len(frames), figsize=(4.2 * len(frames), 3.6), squeeze=False, layout="constrained"
+    )
+    # Only the boundary within the fluid's depth range (floor, end walls, obstacles): the side walls
+    # parallel to the view would otherwise cover the whole picture.
+    depth = 3 - a - b
+    lo, hi = float(frames[0][1][:, depth].min()), float(frames[0][1][:, depth].max())
+    bnd = boundary_position[(boundary_position[:, depth] >= lo) & (boundary_position[:, depth] <= hi)]
+    bnd = bnd[:: max(1, len(bnd) // 20000)]
     for ax, (t, pos, p) in zip(panels[0], frames, strict=True):
         ax.scatter(bnd[:, a], bnd[:, b], s=0.3, c="0.85", rasterized=True)
-        order = np.argsort(-pos[:, 3 - a - b])  # draw the far side first, the near side on top
+        order = np.argsort(-pos[:, depth])  # draw the far side first, the near side on top
         sc = ax.scatter(pos[order, a], pos[order, b], s=0.8, c=p[order], cmap="viridis", vmin=0, vmax=pmax)
         ax.set_title(f"t = {t:.3f} s")
         ax.set_aspect("equal")
