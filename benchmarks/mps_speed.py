@@ -89,11 +89,7 @@ def main(argv: list[str] | None = None) -> None:
             "# MPS time per step by stage\n\nMedian over the timed steps (after warm-up). "
             "Stages: neighbour search and filtering, advection (viscosity + gravity), collision, "
             "PPE assembly (number density, divergence, matrix), PPE solve (Jacobi-CG), "
-            "correction (pressure gradient).\n\n"
-            + "\n".join(lines)
-            + "\n\n"
-            + provenance
-            + "\n"
+            "correction (pressure gradient).\n\n" + "\n".join(lines) + "\n\n" + provenance + "\n"
         )
         with open(RESULTS / "mps_speed.csv", "w", newline="") as f:
             writer = csv.DictWriter(f, fieldnames=header)
