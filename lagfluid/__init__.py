@@ -8,3 +8,18 @@ __version__ = "0.1.0"
 # once per process that CSR support is "beta". The operations we use are tested here, so the notice is
 # noise in every run's log. Only that exact message is silenced.
 warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta", category=UserWarning)
+
+
+def _register_config_resolvers() -> None:
+    """Resolvers used by ``conf/config.yaml``; registered on import so every way of composing it works.
+
+    ``${lagfluid.if_task:TASK,NAME,A,B}`` is ``A`` when ``TASK == NAME``, else ``B``: ``steps`` is the data
+    profile's for ``task=generate`` and 500 otherwise, and ``steps=N`` on the command line still sets it.
+    """
+    from omegaconf import OmegaConf
+
+    if not OmegaConf.has_resolver("lagfluid.if_task"):
+        OmegaConf.register_new_resolver("lagfluid.if_task", lambda task, name, a, b: a if task == name else b)
+
+
+_register_config_resolvers()

@@ -1,6 +1,6 @@
 """Command line: ``python -m lagfluid.run task=simulate|generate|train|evaluate model=... scene=...``.
 
-Hydra composes ``conf/config.yaml`` with one file per group (``model/ scene/ solver/ train/
+Hydra composes ``conf/config.yaml`` with one file per group (``model/ scene/ solver/ train/ data/
 experiment/``) in struct mode, so a misspelt key fails. Names of models and scenes are checked
 *before* Hydra runs, so ``model=foo`` exits with one line naming the bad value and the available
 names instead of Hydra's multi-line report.
@@ -21,7 +21,7 @@ from lagfluid.errors import LagfluidError
 log = logging.getLogger("lagfluid")
 
 CONF_DIR = Path(__file__).resolve().parent.parent / "conf"
-TASKS = ("simulate",)
+TASKS = ("simulate", "generate")
 
 
 def _group_names(group: str) -> list[str]:
@@ -36,8 +36,13 @@ def available_models() -> list[str]:
 
 
 def check_command_line(argv: Sequence[str]) -> str | None:
-    """Return a one-line error for an unknown ``model=``/``scene=``/``task=`` value, else None."""
-    known = {"model": available_models, "scene": lambda: _group_names("scene"), "task": lambda: list(TASKS)}
+    """Return a one-line error for an unknown ``model=``/``scene=``/``data=``/``task=`` value, else None."""
+    known = {
+        "model": available_models,
+        "scene": lambda: _group_names("scene"),
+        "data": lambda: _group_names("data"),
+        "task": lambda: list(TASKS),
+    }
     for arg in argv:
         key, sep, value = arg.partition("=")
         key = key.lstrip("+~")
@@ -66,6 +71,10 @@ def dispatch(cfg: DictConfig) -> None:
         from lagfluid.rollout import simulate
 
         simulate(cfg)
+    elif cfg.task == "generate":
+        from lagfluid.data.generate import generate
+
+        generate(cfg)
     else:  # guarded by check_command_line and the config
         raise LagfluidError(f"unknown task '{cfg.task}'; available: {', '.join(TASKS)}")
 

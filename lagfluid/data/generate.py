@@ -1,0 +1,1028 @@
+"""Dataset generation: the MPS solver on seeded scenes, one HDF5 file per scene, then ``metadata.json``.
+
+``python -m lagfluid.run task=generate scene=random data=cpu [num_scenes=N] [steps=N]`` (profiles in
+``conf/data/``: ``paper``, ``cpu``, ``tiny``) writes::
+
+    DIR/                                 data.out_dir (default data/<profile>)
+      scenes/scene_00007.h5              scene k, built with seed data.seed + k (layout below)
+      metadata.json                      once every scene is there: splits, statistics, provenance
+
+Each scene is independent, so Hydra multirun parallelises generation (joblib launcher)::
+
+    python -m lagfluid.run -m task=generate scene=random data=cpu threads=1 'data.scene_index=range(0,12)'
+    python -m lagfluid.run task=generate scene=random data=cpu     # finishes missing scenes, metadata
+
+With ``data.scene_index`` set a job makes only that scene; the job that finds every scene present writes
+``metadata.json`` (so a complete sweep needs no second command; the plain run is harmless and resumes).
+``threads=1`` keeps each job on one core (the joblib launcher runs one job per core).
+
+**Resume.** Frames and samples go to ``scene_00007.h5.part``; the file is renamed to ``scene_00007.h5``
+(atomic) only when the scene is complete. A rerun skips finished scenes, regenerates missing ones and
+overwrites leftover ``.part`` files, so an interrupted generation never duplicates or corrupts a scene.
+Each file carries a *fingerprint* of everything that determines its content (scene options and seed,
+physical parameters, steps, sampling, solver and collision settings); a finished file with another
+fingerprint is an error rather than silently mixed into the dataset. A scene stopped by the rollout guard
+(NaN, Courant number, a particle leaving the tank) is kept as ``scene_00007.failed.h5`` for inspection;
+the other scenes still run and the generation then fails naming it.
+
+Layout of a scene file (``format="lagfluid"``, ``format_version=1``; ``Nf`` fluid and ``Nb`` boundary
+particles, ``T`` trajectory frames, ``S = ceil(steps / k)`` samples for ``k = sample_every``)::
+
+    /00000                  the trajectory, exactly as lagfluid.data.store writes rollouts: frames at
+                            steps 0, k, 2k, ... and the last step (T = S + 1)
+        time (T,) f8, position (T, Nf, 3) f4, velocity (T, Nf, 3) f4, pressure (T, Nf) f4 (clamped, >= 0)
+        boundary_position (Nb, 3) f4, boundary_type (Nb,) i1     static, stored once (2 wall, 3 dummy)
+        attrs: dt, l0, gravity (3,), viscosity, density, dim, seed, scene_index, scene, scene_options,
+               bounds (2, 3), n0, n0_lap, lambda, fingerprint, steps, sample_every, n_fluid, config,
+               version, git_commit, created, complete, wall_time_s, step_time_median_s, ...
+    /samples                one-step training samples (paper A.2) at solver steps n = 0, k, 2k, ... < steps
+        step (S,) i8                 solver step n of sample s (= s k)
+        frame (S,) i8                trajectory frame holding x^n and v^n (= s)
+        advection/acceleration (S, Nf, 3) f4
+                                     label a = (v* - v^n) / dt = nu lap(v^n) + g; the inputs are
+                                     /00000/position[frame], velocity[frame], the boundary, g and nu
+        pressure/position (S, Nf, 3) f4   x**: fluid positions after advection and collision
+        pressure/velocity (S, Nf, 3) f4   v**: the pressure stage's input velocities
+        pressure/offsets (S + 1,) i8      sample s owns rows offsets[s]:offsets[s + 1] of the ragged arrays
+        pressure/index (M,) i4            particle row of each PPE unknown: < Nf fluid, else boundary
+                                          row index - Nf; the unknowns are the non-dummy particles that
+                                          are not on the free surface (n >= beta n0)
+        pressure/number_density (M,) f4   n at x** (radius re_density, all particle types counted)
+        pressure/pressure (M,) f4         label: the PPE solution (before the p >= 0 clamp)
+        collision/position (C, Nc, 3) f4  x* of the collision-only particle system (input)
+        collision/velocity (C, Nc, 3) f4  v* (input)
+        collision/delta_velocity (C, Nc, 3) f4   label v** - v* given by the exact CollisionRule
+        collision/system (C,) i8, collision/step (C,) i8   which system, which of its steps
+        collision/boundary_position (Ncb, 3) f4, collision/boundary_type (Ncb,) i1   its static floor
+        attrs: format_version (samples layout), count, dt, complete; collision/: restitution,
+               re_collision, num_systems, steps
+
+The samples satisfy the update of :mod:`lagfluid.physics.stages` exactly (same float32 operations):
+``v* = v^n + a dt``, ``x* = x^n + v* dt``, ``x** = x* + (v** - v*) dt``. So the in-scene collision stage's
+samples ``(x*, v*) -> v**`` are there too, without storing them twice.
+
+The collision system (paper A.2: "another particle system that is updated only based on elastic
+collision rule") is, per scene, ``collision.num_systems`` jittered fluid blocks above a wall floor with
+random velocities, each advanced ``collision.steps`` times by a split-step simulator whose only stage is
+:class:`~lagfluid.physics.mps.CollisionRule` (``x* = x + v dt``, then the rule); every step is a sample.
+
+``metadata.json`` (LagrangeBench-style keys plus ours): ``bounds`` ([[lo, hi]] per axis, m, union over the
+scenes), ``dt``, ``dim``, ``default_connectivity_radius`` (m: ``re_laplacian * l0`` = 3.1 l0, the largest
+radius of the MPS operators), ``periodic_boundary_conditions``, ``sequence_length`` (frames per scene),
+``write_every``, ``vel_mean``/``vel_std``/``acc_mean``/``acc_std`` (LagrangeBench units: first and second
+differences of positions between uniformly spaced frames, m per frame), ``statistics`` (per feature:
+mean, std, min, max, count), ``splits`` (file lists), ``counts``, ``scenes``, the solver, materials and
+collision settings, ``version``, ``git_commit``, ``generation_time_s``. Every statistic is computed from
+the **train** split only (DESIGN convention 6).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import math
+import os
+import time
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+from statistics import median
+from typing import Any
+
+import h5py
+import numpy as np
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+import lagfluid
+from lagfluid.data.store import FORMAT, FORMAT_VERSION, TrajectoryFileError, TrajectoryWriter
+from lagfluid.errors import LagfluidError, RolloutError, SceneError
+from lagfluid.models.mps_simulator import build_mps
+from lagfluid.physics.mps import CollisionRule
+from lagfluid.physics.stages import SolverSettings, SplitStepSimulator
+from lagfluid.rollout import Guard, git_commit, rollout, scene_params
+from lagfluid.scenes import build_scene
+from lagfluid.state import ParticleState, ParticleType, SceneParams
+
+__all__ = [
+    "GROUP",
+    "METADATA_FILE",
+    "SAMPLES_FORMAT_VERSION",
+    "DataSpec",
+    "RunningStats",
+    "SceneInfo",
+    "collision_system",
+    "dataset_statistics",
+    "generate",
+    "generate_scene",
+    "read_scene_info",
+    "scene_path",
+    "split_counts",
+    "write_metadata",
+]
+
+log = logging.getLogger(__name__)
+
+GROUP = "00000"
+"""Trajectory group of a scene file (the one group a rollout file has)."""
+SAMPLES_FORMAT_VERSION = 1
+"""Version of the ``/samples`` layout (root attribute ``format_version`` is the trajectory format's)."""
+METADATA_FILE = "metadata.json"
+DATASET_FORMAT = "lagfluid-dataset"
+SCENE_DIR = "scenes"
+SPLITS = ("train", "valid", "test")
+_COMPRESS = {"compression": "gzip", "compression_opts": 4, "shuffle": True}
+
+
+def scene_path(out_dir: str | os.PathLike, index: int) -> Path:
+    """``out_dir/scenes/scene_00007.h5`` for ``index = 7``."""
+    return Path(out_dir) / SCENE_DIR / f"scene_{index:05d}.h5"
+
+
+# ------------------------------------------------------------------------------------------ configuration
+def _range(name: str, value: Any, positive: bool) -> tuple[float, float]:
+    lo, hi = (float(v) for v in value)
+    if not (math.isfinite(lo) and math.isfinite(hi) and lo <= hi) or (positive and lo <= 0):
+        raise LagfluidError(
+            f"{name} must be [low, high] with low <= high{' and low > 0' if positive else ''}"
+        )
+    return lo, hi
+
+
+def _draw(rng: np.random.Generator, lo: float, hi: float, log_uniform: bool) -> float:
+    if log_uniform:
+        return float(math.exp(rng.uniform(math.log(lo), math.log(hi))))
+    return float(rng.uniform(lo, hi))
+
+
+@dataclass(frozen=True)
+class DataSpec:
+    """Everything ``task=generate`` needs, read and checked once from the composed config.
+
+    Attributes:
+        name: profile name.
+        out_dir: dataset directory.
+        num_scenes: number of scenes.
+        steps: solver steps per scene.
+        sample_every: k: frames and samples every k-th step.
+        seed: scene k is built with ``seed + k``.
+        scene_index: only this scene (multirun), or None for all.
+        splits: fraction of the scenes per split.
+        builder: scene builder name.
+        scene_options: builder options shared by every scene (``seed`` is set per scene when the scene
+            takes one).
+        params: physical parameters before the per-scene materials.
+        materials: ``vary``, ``gravity`` and ``viscosity`` ranges, ``log_uniform``.
+        collision: collision-system settings.
+        solver: the ``solver`` config as a plain dict.
+        dtype: floating dtype of the simulation.
+        device: torch device.
+    """
+
+    name: str
+    out_dir: Path
+    num_scenes: int
+    steps: int
+    sample_every: int
+    seed: int
+    scene_index: int | None
+    splits: dict[str, float]
+    builder: str
+    scene_options: dict[str, Any]
+    params: SceneParams
+    materials: dict[str, Any]
+    collision: dict[str, Any]
+    solver: dict[str, Any]
+    dtype: torch.dtype
+    device: torch.device
+
+    @classmethod
+    def from_config(cls, cfg: DictConfig) -> DataSpec:
+        """Read ``cfg.data``, ``cfg.scene``, ``cfg.solver`` and the top-level overrides."""
+        data = OmegaConf.to_container(cfg.data, resolve=True)
+        num_scenes, steps, every = int(cfg.num_scenes), int(cfg.steps), int(data["sample_every"])
+        for key, value in (("num_scenes", num_scenes), ("steps", steps), ("data.sample_every", every)):
+            if value < 1:
+                raise LagfluidError(f"{key} must be >= 1, got {value}")
+        seed = int(data["seed"])
+        if seed < 0:
+            raise LagfluidError(f"data.seed must be >= 0, got {seed}")
+        index = data.get("scene_index")
+        if index is not None and not 0 <= int(index) < num_scenes:
+            raise LagfluidError(f"data.scene_index must be in [0, {num_scenes}), got {index}")
+        splits = {k: float(v) for k, v in (data.get("splits") or {}).items()}
+        if set(splits) - set(SPLITS) or any(v < 0 for v in splits.values()) or splits.get("train", 0) <= 0:
+            raise LagfluidError(
+                f"data.splits must map {', '.join(SPLITS)} to fractions >= 0 (train > 0), got {splits}"
+            )
+        materials = dict(data["materials"])
+        _range("data.materials.gravity", materials["gravity"], positive=materials["log_uniform"])
+        _range("data.materials.viscosity", materials["viscosity"], positive=materials["log_uniform"])
+        collision = dict(data["collision"])
+        if int(collision["num_systems"]) < 0 or int(collision["steps"]) < 1:
+            raise LagfluidError("data.collision needs num_systems >= 0 and steps >= 1")
+        if len(collision["block"]) != 3 or min(int(b) for b in collision["block"]) < 1:
+            raise LagfluidError(f"data.collision.block must be 3 positive ints, got {collision['block']}")
+        _range("data.collision.spacing", collision["spacing"], positive=True)
+        _range("data.collision.speed", collision["speed"], positive=True)
+        scene = OmegaConf.to_container(cfg.scene, resolve=True)
+        options = {k: v for k, v in scene.items() if k not in ("name", "builder", "params")}
+        options.update(data.get("scene_options") or {})
+        params = scene_params(cfg)
+        if cfg.dt is None and data.get("dt") is not None:
+            params = params.with_overrides(dt=float(data["dt"]))
+        dtype = {"float32": torch.float32, "float64": torch.float64}.get(cfg.dtype)
+        if dtype is None:
+            raise LagfluidError(f"unknown dtype '{cfg.dtype}'; available: float32, float64")
+        return cls(
+            name=str(data["name"]),
+            out_dir=Path(data["out_dir"]),
+            num_scenes=num_scenes,
+            steps=steps,
+            sample_every=every,
+            seed=seed,
+            scene_index=None if index is None else int(index),
+            splits=splits,
+            builder=str(cfg.scene.get("builder") or cfg.scene.name),
+            scene_options=options,
+            params=params,
+            materials=materials,
+            collision=collision,
+            solver=OmegaConf.to_container(cfg.solver, resolve=True),
+            dtype=dtype,
+            device=torch.device(cfg.device),
+        )
+
+    @property
+    def num_samples(self) -> int:
+        """Samples per scene: one at every k-th step before the last, S = ceil(steps / k)."""
+        return -(-self.steps // self.sample_every)
+
+    def scene_setup(self, index: int) -> tuple[dict[str, Any], SceneParams, int]:
+        """Options, physical parameters (materials drawn when they vary) and seed of scene ``index``."""
+        seed = self.seed + index
+        options = dict(self.scene_options)
+        if "seed" in options:
+            options["seed"] = seed
+        params = self.params
+        if self.materials["vary"]:
+            rng = np.random.default_rng([seed, 1])  # a stream of its own: the scene draws from seed alone
+            m = self.materials
+            g = _draw(rng, *m["gravity"], m["log_uniform"])
+            nu = _draw(rng, *m["viscosity"], m["log_uniform"])
+            direction = np.asarray(params.gravity, dtype=np.float64)
+            norm = float(np.linalg.norm(direction))
+            direction = direction / norm if norm > 0 else np.array([0.0, 0.0, -1.0])
+            params = replace(params, gravity=tuple(float(v) for v in g * direction), viscosity=nu)
+        return options, params, seed
+
+    def fingerprint(self, index: int) -> str:
+        """Hash of everything that determines the content of scene ``index``."""
+        options, params, seed = self.scene_setup(index)
+        # The guard and the (exact) neighbour backend do not change what a finished file holds.
+        solver = {k: v for k, v in self.solver.items() if k not in ("guard", "neighbors")}
+        content = {
+            "builder": self.builder,
+            "options": options,
+            "params": asdict(params),
+            "seed": seed,
+            "steps": self.steps,
+            "sample_every": self.sample_every,
+            "solver": solver,
+            "collision": self.collision,
+            "dtype": str(self.dtype),
+            "samples_format": SAMPLES_FORMAT_VERSION,
+        }
+        return hashlib.sha256(json.dumps(content, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+def split_counts(num_scenes: int, fractions: dict[str, float]) -> dict[str, int]:
+    """Scenes per split: ``round(f n)`` valid and test scenes for fractions ``f``, the rest train.
+
+    Valid and test get at least one scene each when ``n >= 3`` and their fraction is > 0.
+
+    Raises:
+        LagfluidError: nothing would be left for training.
+    """
+    total = sum(fractions.values())
+    counts = {}
+    for split in ("valid", "test"):
+        f = fractions.get(split, 0.0) / total
+        n = round(f * num_scenes)
+        counts[split] = max(n, 1) if f > 0 and num_scenes >= 3 else n
+    counts["train"] = num_scenes - counts["valid"] - counts["test"]
+    if counts["train"] < 1:
+        raise LagfluidError(f"data.splits {fractions} leave no training scene out of {num_scenes}")
+    return {s: counts[s] for s in SPLITS}
+
+
+def split_of(num_scenes: int, fractions: dict[str, float]) -> list[str]:
+    """Split of every scene index: train first, then valid, then test (deterministic by index)."""
+    counts = split_counts(num_scenes, fractions)
+    return [s for s in SPLITS for _ in range(counts[s])]
+
+
+# ------------------------------------------------------------------------------------------ scene files
+@dataclass(frozen=True)
+class SceneInfo:
+    """What a finished scene file holds (read without loading its arrays).
+
+    Attributes:
+        path: the file.
+        attrs: trajectory-group attributes.
+        n_fluid: Nf.
+        n_boundary: Nb.
+        frames: T.
+        samples: S (advection and pressure samples).
+        collision_samples: C.
+        complete: the trajectory and the samples were finished.
+    """
+
+    path: Path
+    attrs: dict[str, Any]
+    n_fluid: int
+    n_boundary: int
+    frames: int
+    samples: int
+    collision_samples: int
+    complete: bool
+
+
+_REQUIRED = {
+    GROUP: ("time", "position", "velocity", "pressure", "boundary_position", "boundary_type"),
+    "samples": ("step", "frame"),
+    "samples/advection": ("acceleration",),
+    "samples/pressure": ("position", "velocity", "offsets", "index", "number_density", "pressure"),
+    "samples/collision": (
+        "position",
+        "velocity",
+        "delta_velocity",
+        "system",
+        "step",
+        "boundary_position",
+        "boundary_type",
+    ),
+}
+
+
+def _check_scene_file(f: h5py.File, path: Path) -> None:
+    """Raise :class:`TrajectoryFileError` unless ``f`` is a scene file of this lagfluid's layout."""
+    if f.attrs.get("format") != FORMAT:
+        raise TrajectoryFileError(f"{path} is not a lagfluid file (format={f.attrs.get('format')!r})")
+    version = int(f.attrs.get("format_version", -1))
+    if version != FORMAT_VERSION:
+        raise TrajectoryFileError(
+            f"{path} has format_version {version}; this lagfluid reads {FORMAT_VERSION}"
+        )
+    for group, names in _REQUIRED.items():
+        if group not in f:
+            raise TrajectoryFileError(f"{path} lacks the group '/{group}': not a scene file of task=generate")
+        for name in names:
+            if name not in f[group]:
+                raise TrajectoryFileError(f"{path} lacks the array '/{group}/{name}'")
+    version = int(f["samples"].attrs.get("format_version", -1))
+    if version != SAMPLES_FORMAT_VERSION:
+        raise TrajectoryFileError(
+            f"{path} has samples format_version {version}; this lagfluid reads {SAMPLES_FORMAT_VERSION}"
+        )
+    g, s = f[GROUP], f["samples"]
+    t, nf = g["position"].shape[:2]
+    n = s["step"].shape[0]
+    shapes_ok = (
+        g["velocity"].shape == (t, nf, 3)
+        and g["pressure"].shape == (t, nf)
+        and s["frame"].shape == (n,)
+        and s["advection/acceleration"].shape == (n, nf, 3)
+        and s["pressure/position"].shape == (n, nf, 3)
+        and s["pressure/velocity"].shape == (n, nf, 3)
+        and s["pressure/offsets"].shape == (n + 1,)
+        and (n == 0 or int(s["frame"][-1]) < t)
+    )
+    if not shapes_ok:
+        raise TrajectoryFileError(f"{path}: arrays disagree in shape (T={t}, Nf={nf}, S={n})")
+
+
+def read_scene_info(path: str | os.PathLike) -> SceneInfo:
+    """Open a scene file, check its layout and return its sizes and attributes.
+
+    Raises:
+        TrajectoryFileError: missing, unreadable, another format or version, a missing group or array.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise TrajectoryFileError(f"scene file not found: {path}")
+    try:
+        f = h5py.File(path, "r")
+    except OSError as err:
+        raise TrajectoryFileError(f"cannot read {path} as HDF5 (corrupt or truncated?): {err}") from err
+    with f:
+        _check_scene_file(f, path)
+        g, s = f[GROUP], f["samples"]
+        return SceneInfo(
+            path=path,
+            attrs=dict(g.attrs),
+            n_fluid=int(g["position"].shape[1]),
+            n_boundary=int(g["boundary_position"].shape[0]),
+            frames=int(g["position"].shape[0]),
+            samples=int(s["step"].shape[0]),
+            collision_samples=int(s["collision/position"].shape[0]),
+            complete=bool(g.attrs.get("complete", False)) and bool(s.attrs.get("complete", False)),
+        )
+
+
+def _scene_done(path: Path, fingerprint: str) -> bool:
+    """True for a finished scene file made with ``fingerprint``; False when it must be (re)generated.
+
+    Raises:
+        LagfluidError: a finished file made with another configuration.
+    """
+    if not path.exists():
+        return False
+    try:
+        info = read_scene_info(path)
+    except TrajectoryFileError as err:
+        log.warning("%s; regenerating it", err)
+        return False
+    if not info.complete:
+        log.warning("%s is incomplete; regenerating it", path)
+        return False
+    found = str(info.attrs.get("fingerprint", ""))
+    if found != fingerprint:
+        raise LagfluidError(
+            f"{path} was generated with another configuration (fingerprint {found}, this run {fingerprint}: "
+            "scene options, materials, steps, sample_every, solver or collision settings differ); "
+            "use another data.out_dir or delete the file"
+        )
+    return True
+
+
+# ------------------------------------------------------------------------------------------ samples
+def _appendable(
+    group: h5py.Group, name: str, shape: tuple[int, ...], dtype: str, chunk: int = 0
+) -> h5py.Dataset:
+    """A dataset growing along axis 0: one sample per chunk for per-particle arrays, else ``chunk`` rows."""
+    chunks = (1, *[max(s, 1) for s in shape]) if shape else (chunk or 4096,)
+    return group.create_dataset(
+        name, (0, *shape), maxshape=(None, *shape), dtype=dtype, chunks=chunks, **_COMPRESS
+    )
+
+
+def _append(ds: h5py.Dataset, values: np.ndarray) -> None:
+    n = ds.shape[0]
+    ds.resize(n + values.shape[0], axis=0)
+    ds[n:] = values
+
+
+class _SampleWriter:
+    """Appends the one-step samples of a scene to ``/samples`` of the open scene file."""
+
+    def __init__(self, group: h5py.Group, n_fluid: int, dt: float) -> None:
+        self.group, self.n_fluid = group, n_fluid
+        group.attrs.update(format_version=SAMPLES_FORMAT_VERSION, dt=dt, complete=False, count=0)
+        self.step = _appendable(group, "step", (), "i8", 1024)
+        self.frame = _appendable(group, "frame", (), "i8", 1024)
+        adv, prs = group.create_group("advection"), group.create_group("pressure")
+        self.acc = _appendable(adv, "acceleration", (n_fluid, 3), "f4")
+        self.p_pos = _appendable(prs, "position", (n_fluid, 3), "f4")
+        self.p_vel = _appendable(prs, "velocity", (n_fluid, 3), "f4")
+        self.offsets = prs.create_dataset(
+            "offsets", data=np.zeros(1, np.int64), maxshape=(None,), chunks=(1024,)
+        )
+        self.index = _appendable(prs, "index", (), "i4", 1 << 16)
+        self.density = _appendable(prs, "number_density", (), "f4", 1 << 16)
+        self.pressure = _appendable(prs, "pressure", (), "f4", 1 << 16)
+        self.count = 0
+
+    def append(self, state: ParticleState, fields: dict[str, torch.Tensor]) -> None:
+        """Store the sample of the step that starts at ``state`` from the simulator's recorded fields."""
+
+        def np32(name: str) -> np.ndarray:
+            return fields[name].detach().cpu().numpy().astype(np.float32, copy=False)
+
+        solved = torch.nonzero(fields["ppe_solved"]).flatten().cpu().numpy()
+        _append(self.step, np.array([state.step], np.int64))
+        _append(self.frame, np.array([self.count], np.int64))
+        _append(self.acc, np32("advection_acceleration")[None])
+        _append(self.p_pos, np32("pos_collided")[None])
+        _append(self.p_vel, np32("vel_collided")[None])
+        _append(self.index, solved.astype(np.int32))
+        _append(self.density, np32("number_density")[solved])
+        _append(self.pressure, np32("pressure_unclamped")[solved])
+        _append(self.offsets, np.array([self.offsets[-1] + len(solved)], np.int64))
+        self.count += 1
+        self.group.attrs["count"] = self.count
+        self.group.file.flush()
+
+
+class _SampleRecorder:
+    """A :class:`~lagfluid.models.simulator.Simulator` wrapper that records every k-th step's intermediates.
+
+    Recording is switched on only for the sampled steps, so the other steps cost what a plain rollout does.
+    """
+
+    def __init__(self, sim: SplitStepSimulator, every: int, sink: Callable[[ParticleState, dict], None]):
+        self.sim, self.every, self.sink = sim, every, sink
+        self.name = sim.name
+
+    @property
+    def last_timings(self) -> dict[str, float]:
+        """The wrapped simulator's stage times of the last step."""
+        return self.sim.last_timings
+
+    @property
+    def last_info(self) -> dict[str, float]:
+        """The wrapped simulator's diagnostics of the last step."""
+        return self.sim.last_info
+
+    def reset(self, state: ParticleState) -> None:
+        """Reset the wrapped simulator."""
+        self.sim.reset(state)
+
+    def attributes(self) -> dict[str, Any]:
+        """The wrapped simulator's constants."""
+        return self.sim.attributes()
+
+    def step(self, state: ParticleState) -> ParticleState:
+        """One step; hands the intermediates of the sampled steps to the sink."""
+        record = state.step % self.every == 0
+        self.sim.record_intermediates = record
+        new = self.sim.step(state)
+        if record:
+            self.sink(state, self.sim.last_fields)
+        return new
+
+
+# ------------------------------------------------------------------------------------------ collision system
+def collision_system(
+    rng: np.random.Generator, collision: dict[str, Any], params: SceneParams, dtype: torch.dtype
+) -> ParticleState:
+    """One particle system for collision samples: a jittered fluid block with random velocities.
+
+    The block has ``collision.block`` particles on a lattice of spacing U(``spacing``) l0 with uniform noise
+    of +- ``jitter`` l0, so many pairs are closer than the collision radius (0.92 l0). Velocities are
+    ``drift + scale N(0, I) / sqrt(3)`` with a log-uniform ``scale`` in ``speed`` (m/s) and a drift of random
+    direction and size U(0, scale). With ``floor`` a floor of 2 wall layers and 1 dummy layer lies 1 l0
+    below the block's lowest lattice plane (wall collisions; dummies are ignored by the rule).
+
+    Args:
+        rng: random generator (one per scene).
+        collision: the ``data.collision`` settings.
+        params: physical parameters (``l0``, ``dt``).
+        dtype: floating dtype.
+
+    Returns:
+        the state, particles sorted fluid, wall, dummy.
+    """
+    l0 = params.l0
+    nx, ny, nz = (int(b) for b in collision["block"])
+    spacing = rng.uniform(*collision["spacing"]) * l0
+    axes = [np.arange(n, dtype=np.float64) * spacing for n in (nx, ny, nz)]
+    fluid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    fluid += rng.uniform(-1.0, 1.0, fluid.shape) * float(collision["jitter"]) * l0
+    lo, hi = (float(v) for v in collision["speed"])
+    scale = _draw(rng, lo, hi, log_uniform=True)
+    direction = rng.normal(size=3)
+    drift = direction / np.linalg.norm(direction) * rng.uniform(0.0, scale)
+    vel = drift + scale * rng.normal(size=fluid.shape) / math.sqrt(3.0)
+    pos, types = [fluid], [np.full(len(fluid), int(ParticleType.FLUID))]
+    if collision.get("floor", True):
+        extent = [(-2, math.ceil(a[-1] / l0) + 2) for a in axes[:2]]
+        xs, ys = (np.arange(a, b + 1, dtype=np.float64) * l0 for a, b in extent)
+        for layer, kind in ((1, ParticleType.WALL), (2, ParticleType.WALL), (3, ParticleType.DUMMY)):
+            grid = np.stack(np.meshgrid(xs, ys, indexing="ij"), axis=-1).reshape(-1, 2)
+            pos.append(np.column_stack([grid, np.full(len(grid), -layer * l0)]))
+            types.append(np.full(len(grid), int(kind)))
+    pos_all = np.concatenate(pos)
+    vel_all = np.zeros_like(pos_all)
+    vel_all[: len(fluid)] = vel
+    return ParticleState.from_arrays(
+        torch.from_numpy(pos_all),
+        torch.from_numpy(vel_all),
+        torch.from_numpy(np.concatenate(types)),
+        params,
+        dtype=dtype,
+    )
+
+
+def _write_collision_samples(
+    group: h5py.Group, spec: DataSpec, settings: SolverSettings, params: SceneParams, seed: int
+) -> int:
+    """Simulate the scene's collision systems and store their samples in ``group``; returns the count."""
+    col = spec.collision
+    rng = np.random.default_rng([seed, 2])
+    # Collision-only dynamics: no gravity or viscosity stage, no pressure: x* = x + v dt, then the rule.
+    params = replace(params, gravity=(0.0, 0.0, 0.0), viscosity=0.0)
+    systems = [collision_system(rng, col, params, spec.dtype) for _ in range(int(col["num_systems"]))]
+    template = systems[0] if systems else collision_system(np.random.default_rng(0), col, params, spec.dtype)
+    nc = template.n_fluid
+    group.attrs.update(
+        restitution=settings.restitution,
+        re_collision=settings.re_collision,
+        num_systems=len(systems),
+        steps=int(col["steps"]),
+        l0=params.l0,
+        dt=params.dt,
+    )
+    group.create_dataset("boundary_position", data=template.pos[nc:].numpy().astype(np.float32))
+    group.create_dataset("boundary_type", data=template.ptype[nc:].numpy().astype(np.int8))
+    arrays = {
+        name: _appendable(group, name, (nc, 3), "f4") for name in ("position", "velocity", "delta_velocity")
+    }
+    system_ds = _appendable(group, "system", (), "i8", 1024)
+    step_ds = _appendable(group, "step", (), "i8", 1024)
+    count = 0
+    for k, state in enumerate(systems):
+        state = state.to(device=spec.device)
+        sim = SplitStepSimulator("collision", settings, None, CollisionRule(), None)
+        sim.record_intermediates = True
+        for j in range(int(col["steps"])):
+            new = sim.step(state)
+            f = sim.last_fields
+            dv = f["vel_collided"] - f["vel_star"]
+            for name, values in (
+                ("position", f["pos_star"]),
+                ("velocity", f["vel_star"]),
+                ("delta_velocity", dv),
+            ):
+                _append(arrays[name], values.cpu().numpy().astype(np.float32)[None])
+            _append(system_ds, np.array([k], np.int64))
+            _append(step_ds, np.array([j], np.int64))
+            count += 1
+            state = new
+    return count
+
+
+# ------------------------------------------------------------------------------------------ one scene
+def generate_scene(cfg: DictConfig, spec: DataSpec, index: int) -> Path:
+    """Simulate scene ``index`` with MPS and write its file (trajectory + samples); returns the path.
+
+    Raises:
+        LagfluidError: the rollout guard stopped the scene (the file is kept as ``*.failed.h5``), or the scene
+            is invalid.
+    """
+    path = scene_path(spec.out_dir, index)
+    failed = path.with_name(path.stem + ".failed.h5")
+    options, params, seed = spec.scene_setup(index)
+    try:
+        state = build_scene(spec.builder, params, dtype=spec.dtype, **options).to(device=spec.device)
+    except SceneError as err:
+        raise SceneError(f"scene {index} (seed {seed}): {err}") from err
+    settings = SolverSettings.from_config(cfg.solver)
+    sim = build_mps(cfg)
+    sim.reset(state)
+    nf = state.n_fluid
+    attrs = {
+        "model": sim.name,
+        "scene": spec.builder,
+        "scene_options": options,
+        "scene_index": index,
+        "seed": seed,
+        "dt": params.dt,
+        "write_every": spec.sample_every,
+        "sample_every": spec.sample_every,
+        "steps": spec.steps,
+        "l0": params.l0,
+        "gravity": list(params.gravity),
+        "viscosity": params.viscosity,
+        "density": params.density,
+        "dim": params.dim,
+        "n_fluid": nf,
+        "bounds": state.bounds.cpu().numpy().astype(np.float64) if state.bounds is not None else None,
+        "fingerprint": spec.fingerprint(index),
+        "dataset": spec.name,
+        "config": OmegaConf.to_yaml(cfg, resolve=True),
+        "version": lagfluid.__version__,
+        "git_commit": git_commit(),
+        "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+        **sim.attributes(),
+    }
+    writer = TrajectoryWriter(
+        path, nf, state.pos[nf:].cpu().numpy(), state.ptype[nf:].cpu().numpy(), attrs, group=GROUP
+    )
+    start = time.perf_counter()
+    try:
+        samples = _SampleWriter(writer.file.create_group("samples"), nf, params.dt)
+        recorder = _SampleRecorder(sim, spec.sample_every, samples.append)
+        guard = Guard(float(cfg.solver.guard.max_courant), int(cfg.solver.guard.check_every))
+        _, record = rollout(
+            recorder,
+            state,
+            spec.steps,
+            guard=guard,
+            writer=writer,
+            write_every=spec.sample_every,
+            progress=bool(cfg.progress),
+        )
+        sim_seconds = time.perf_counter() - start
+        collisions = _write_collision_samples(
+            samples.group.create_group("collision"), spec, settings, params, seed
+        )
+        samples.group.attrs["complete"] = True
+        writer.group.attrs.update(
+            wall_time_s=time.perf_counter() - start,
+            simulation_time_s=sim_seconds,
+            step_time_median_s=median(record["step_seconds"]),
+            ppe_iterations_median=median(record["info"].get("ppe_iterations", [0.0])),
+            collision_samples=collisions,
+        )
+        writer.close(complete=True)
+        failed.unlink(missing_ok=True)  # a failure of an earlier run with other settings
+    except RolloutError as err:
+        writer.file.close()
+        os.replace(writer.tmp_path, failed)
+        raise LagfluidError(
+            f"scene {index} ({path.name}, seed {seed}) stopped: {err}; kept as {failed}"
+        ) from err
+    except BaseException:
+        # Interrupted or failed otherwise: leave the .part file; the next run overwrites it.
+        if writer.file.id.valid:
+            writer.file.close()
+        raise
+    log.info(
+        "scene %d: %d steps in %.0f s (%.0f ms/step median), %d + %d collision samples -> %s",
+        index,
+        spec.steps,
+        time.perf_counter() - start,
+        1e3 * median(record["step_seconds"]),
+        spec.num_samples,
+        collisions,
+        path,
+    )
+    return path
+
+
+# ------------------------------------------------------------------------------------------ statistics
+class RunningStats:
+    """Mean, standard deviation, min and max of a stream of values, merged batch by batch in float64.
+
+    Values are (n,) for a scalar feature or (n, d) for a vector feature (per component).
+    """
+
+    def __init__(self) -> None:
+        self.count = 0
+        self.mean: np.ndarray | None = None
+        self.m2: np.ndarray | None = None
+        self.min: np.ndarray | None = None
+        self.max: np.ndarray | None = None
+
+    def update(self, values: np.ndarray) -> None:
+        """Add a batch of values (Chan et al.'s parallel update: stable for any batch sizes)."""
+        x = np.asarray(values, dtype=np.float64)
+        n = x.shape[0]
+        if n == 0:
+            return
+        mean, m2 = x.mean(axis=0), ((x - x.mean(axis=0)) ** 2).sum(axis=0)
+        if self.count == 0:
+            self.count, self.mean, self.m2 = n, mean, m2
+            self.min, self.max = x.min(axis=0), x.max(axis=0)
+            return
+        total = self.count + n
+        delta = mean - self.mean
+        self.mean = self.mean + delta * n / total
+        self.m2 = self.m2 + m2 + delta**2 * self.count * n / total
+        self.min, self.max = np.minimum(self.min, x.min(axis=0)), np.maximum(self.max, x.max(axis=0))
+        self.count = total
+
+    def result(self) -> dict[str, Any]:
+        """``mean``, ``std`` (population), ``min``, ``max``: floats or lists; ``count``."""
+        if self.count == 0:
+            return {"mean": None, "std": None, "min": None, "max": None, "count": 0}
+
+        def out(a: np.ndarray) -> Any:
+            return a.tolist() if a.ndim else float(a)
+
+        return {
+            "mean": out(self.mean),
+            "std": out(np.sqrt(self.m2 / self.count)),
+            "min": out(self.min),
+            "max": out(self.max),
+            "count": int(self.count),
+        }
+
+
+STATISTICS = {
+    "speed": "|v^n| of the fluid particles (advection-net input; vel_scaler of the authors)",
+    "velocity": "v^n of the fluid particles, per component, m/s",
+    "acceleration": "advection label a = nu lap(v) + g, per component, m/s^2 (acc_scaler)",
+    "acceleration_norm": "|a|, m/s^2",
+    "pressure": "PPE solution on the unknowns (pressure-net label, before the clamp), Pa (prs_scaler)",
+    "density_ratio": "n / n0 on the PPE unknowns (pressure-net input; dns_scaler)",
+    "pressure_speed": "|v**| of the fluid PPE unknowns (pressure-net input)",
+    "collision_speed": "|v*| in the collision systems, m/s",
+    "collision_delta_velocity": "collision label v** - v*, per component, m/s",
+}
+"""Feature name -> what it measures (every entry of ``metadata.json["statistics"]``)."""
+
+
+def dataset_statistics(paths: Iterable[str | os.PathLike]) -> dict[str, Any]:
+    """Statistics of the features in :data:`STATISTICS` plus LagrangeBench's ``vel_*``/``acc_*`` over files.
+
+    Returns:
+        ``{"statistics": {feature: {mean, std, min, max, count}}, "vel_mean": [3], "vel_std": [3],
+        "acc_mean": [3], "acc_std": [3]}``; LagrangeBench's are differences of positions between the uniformly
+        spaced frames (m per frame), first (vel) and second (acc) order.
+    """
+    stats = {name: RunningStats() for name in STATISTICS}
+    lb_vel, lb_acc = RunningStats(), RunningStats()
+    for path in paths:
+        path = Path(path)
+        info = read_scene_info(path)
+        with h5py.File(path, "r") as f:
+            g, s = f[GROUP], f["samples"]
+            nf, n0 = info.n_fluid, float(info.attrs["n0"])
+            frames = s["frame"][()]
+            vel = g["velocity"][()][frames].reshape(-1, 3)
+            stats["velocity"].update(vel)
+            stats["speed"].update(np.linalg.norm(vel, axis=1))
+            acc = s["advection/acceleration"][()].reshape(-1, 3)
+            stats["acceleration"].update(acc)
+            stats["acceleration_norm"].update(np.linalg.norm(acc, axis=1))
+            index = s["pressure/index"][()]
+            stats["pressure"].update(s["pressure/pressure"][()])
+            stats["density_ratio"].update(s["pressure/number_density"][()] / n0)
+            offsets, p_vel = s["pressure/offsets"][()], s["pressure/velocity"][()]
+            for k in range(len(frames)):
+                rows = index[offsets[k] : offsets[k + 1]]
+                fluid = rows[rows < nf]
+                stats["pressure_speed"].update(np.linalg.norm(p_vel[k][fluid], axis=1))
+            c = s["collision"]
+            stats["collision_speed"].update(np.linalg.norm(c["velocity"][()].reshape(-1, 3), axis=1))
+            stats["collision_delta_velocity"].update(c["delta_velocity"][()].reshape(-1, 3))
+            uniform = int(info.attrs["steps"]) // int(info.attrs["sample_every"]) + 1
+            pos = g["position"][: min(uniform, info.frames)].astype(np.float64)
+            if pos.shape[0] >= 2:
+                d1 = np.diff(pos, axis=0)
+                lb_vel.update(d1.reshape(-1, 3))
+                if pos.shape[0] >= 3:
+                    lb_acc.update(np.diff(d1, axis=0).reshape(-1, 3))
+    v, a = lb_vel.result(), lb_acc.result()
+    return {
+        "statistics": {name: st.result() for name, st in stats.items()},
+        "vel_mean": v["mean"],
+        "vel_std": v["std"],
+        "acc_mean": a["mean"],
+        "acc_std": a["std"],
+    }
+
+
+# ------------------------------------------------------------------------------------------ metadata
+def _write_json(path: Path, content: dict[str, Any]) -> None:
+    """Write atomically: a per-process temporary file, then rename (parallel jobs may race here)."""
+    tmp = path.with_name(f"{path.name}.{os.getpid()}.part")
+    tmp.write_text(json.dumps(content, indent=2))
+    os.replace(tmp, path)
+
+
+def write_metadata(spec: DataSpec, generation_seconds: float | None = None) -> dict[str, Any]:
+    """Write ``metadata.json`` for the scenes ``0 .. num_scenes-1`` (all must be finished); returns it."""
+    infos = [read_scene_info(scene_path(spec.out_dir, k)) for k in range(spec.num_scenes)]
+    splits = split_of(spec.num_scenes, spec.splits)
+    rel = [str(i.path.relative_to(spec.out_dir)) for i in infos]
+    first = infos[0].attrs
+    settings = SolverSettings.from_config(spec.solver)
+    l0, dim = float(first["l0"]), int(first["dim"])
+    bounds = [i.attrs["bounds"] for i in infos if not isinstance(i.attrs.get("bounds"), str)]
+    box = None
+    if bounds:
+        lo = np.min([np.asarray(b)[0] for b in bounds], axis=0)
+        hi = np.max([np.asarray(b)[1] for b in bounds], axis=0)
+        box = [[float(a), float(b)] for a, b in zip(lo, hi, strict=True)]
+    counts = {}
+    for split in SPLITS:
+        members = [i for i, s in zip(infos, splits, strict=True) if s == split]
+        counts[split] = {
+            "scenes": len(members),
+            "frames": sum(i.frames for i in members),
+            "advection_samples": sum(i.samples for i in members),
+            "pressure_samples": sum(i.samples for i in members),
+            "collision_samples": sum(i.collision_samples for i in members),
+        }
+    train = [i.path for i, s in zip(infos, splits, strict=True) if s == "train"]
+    stats = dataset_statistics(train)
+    seconds = [float(i.attrs.get("wall_time_s", 0.0)) for i in infos]
+    meta = {
+        "format": DATASET_FORMAT,
+        "format_version": 1,
+        "samples_format_version": SAMPLES_FORMAT_VERSION,
+        "name": spec.name,
+        "num_scenes": spec.num_scenes,
+        "steps": spec.steps,
+        "sample_every": spec.sample_every,
+        "write_every": spec.sample_every,
+        "sequence_length": infos[0].frames,
+        "dt": float(first["dt"]),
+        "dim": dim,
+        "l0": l0,
+        "bounds": box,
+        "periodic_boundary_conditions": [False] * dim,
+        "default_connectivity_radius": settings.re_laplacian * l0,
+        "default_connectivity_radius_note": "re_laplacian * l0: the largest radius of the MPS operators",
+        "radii_l0": {
+            "density": settings.re_density,
+            "gradient": settings.re_gradient,
+            "laplacian": settings.re_laplacian,
+            "collision": settings.re_collision,
+        },
+        "n0": float(first["n0"]),
+        "n0_lap": float(first["n0_lap"]),
+        "lambda": float(first["lambda"]),
+        "statistics_split": "train",
+        "statistics_features": STATISTICS,
+        **stats,
+        "splits": {split: [r for r, s in zip(rel, splits, strict=True) if s == split] for split in SPLITS},
+        "counts": counts,
+        "scenes": [
+            {
+                "index": k,
+                "file": rel[k],
+                "split": splits[k],
+                "seed": int(i.attrs["seed"]),
+                "gravity": [float(g) for g in i.attrs["gravity"]],
+                "viscosity": float(i.attrs["viscosity"]),
+                "n_fluid": i.n_fluid,
+                "n_boundary": i.n_boundary,
+                "frames": i.frames,
+                "samples": i.samples,
+                "collision_samples": i.collision_samples,
+                "wall_time_s": seconds[k],
+                "step_time_median_s": float(i.attrs.get("step_time_median_s", math.nan)),
+            }
+            for k, i in enumerate(infos)
+        ],
+        "scene": {"builder": spec.builder, "options": spec.scene_options},
+        "materials": spec.materials,
+        "collision": spec.collision,
+        "solver": spec.solver,
+        "model": "mps",
+        "version": lagfluid.__version__,
+        "git_commit": git_commit(),
+        "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+        "generation_time_s": sum(seconds),
+        "generation_run_time_s": generation_seconds,
+    }
+    _write_json(spec.out_dir / METADATA_FILE, meta)
+    return meta
+
+
+# ------------------------------------------------------------------------------------------ task
+def generate(cfg: DictConfig) -> dict[str, Any] | None:
+    """``task=generate``: make the missing scenes (or only ``data.scene_index``), then ``metadata.json``.
+
+    Returns:
+        the metadata once every scene is there, else None (other multirun jobs are still working).
+
+    Raises:
+        LagfluidError: bad settings, a scene file from another configuration, or scenes stopped by the guard
+            (named; the others are still generated).
+    """
+    if cfg.get("threads"):
+        torch.set_num_threads(int(cfg.threads))
+    spec = DataSpec.from_config(cfg)
+    if "seed" not in spec.scene_options:
+        log.warning(
+            "scene '%s' takes no seed: every scene starts alike (use scene=random for the paper's data)",
+            spec.builder,
+        )
+    split_counts(spec.num_scenes, spec.splits)  # fail on impossible splits before hours of simulation
+    start = time.perf_counter()
+    todo: Sequence[int] = range(spec.num_scenes) if spec.scene_index is None else [spec.scene_index]
+    log.info(
+        "generating %s of %d scenes (%d steps, samples every %d) into %s",
+        "all" if spec.scene_index is None else f"scene {spec.scene_index}",
+        spec.num_scenes,
+        spec.steps,
+        spec.sample_every,
+        spec.out_dir,
+    )
+    failed = []
+    for k in todo:
+        path = scene_path(spec.out_dir, k)
+        if _scene_done(path, spec.fingerprint(k)):
+            log.info("scene %d: %s is done, skipped", k, path)
+            continue
+        try:
+            generate_scene(cfg, spec, k)
+        except LagfluidError as err:
+            if spec.scene_index is not None:
+                raise
+            log.error("%s", err)
+            failed.append(str(err))
+    if failed:
+        raise LagfluidError(f"{len(failed)} scene(s) failed: " + " | ".join(failed))
+    missing = [
+        k for k in range(spec.num_scenes) if not _scene_done(scene_path(spec.out_dir, k), spec.fingerprint(k))
+    ]
+    if missing:
+        log.info("metadata.json waits for scenes %s (other jobs, or rerun task=generate)", missing)
+        return None
+    meta = write_metadata(spec, time.perf_counter() - start)
+    log.info(
+        "wrote %s: %d scenes (%s), %d advection/pressure and %d collision training samples",
+        spec.out_dir / METADATA_FILE,
+        spec.num_scenes,
+        ", ".join(f"{s} {meta['counts'][s]['scenes']}" for s in SPLITS),
+        meta["counts"]["train"]["advection_samples"],
+        meta["counts"]["train"]["collision_samples"],
+    )
+    return meta
