@@ -7,9 +7,11 @@ keep *candidate* pairs within ``cutoff + skin`` and filter them by the true curr
 is rebuilt only when some fluid particle has moved more than ``skin / 2`` since the last build, which
 guarantees that every pair within ``cutoff`` is a candidate. The result is exact, not approximate.
 
-Receivers (graph targets) are the fluid particles and the wall particles within reach of the fluid;
-dummy particles and walls far from any fluid only ever appear as sources, so a scene's boundary costs
-work only where the fluid is ("model only what the scene requires").
+Receivers (graph targets) are the fluid particles and the wall particles within the asked radius of
+some fluid particle (at the current positions, so the set never depends on when the list was rebuilt);
+dummy particles and walls farther from the fluid only ever appear as sources, so a scene's boundary
+costs work only where the fluid is ("model only what the scene requires"). Such far walls are treated as
+p = 0 by the pressure solve: with no fluid within 3.1 l0 they cannot push any fluid particle anyway.
 """
 
 from __future__ import annotations
@@ -165,7 +167,18 @@ class VerletNeighborList:
         self.update(pos, ptype)
         candidates = self.candidates[:, : self._fluid_prefix] if fluid_targets_only else self.candidates
         rel, dist = edge_vectors(pos, candidates)
-        keep = torch.nonzero(dist < radius).flatten()
+        within = dist < radius
+        if not fluid_targets_only:
+            # Wall targets: exactly the walls with a fluid particle within `radius` now. The list holds more
+            # (walls within reach at its last build), but a set that depended on when the list was rebuilt
+            # would make the pressure of the walls at the edge of that set depend on history.
+            n_fluid = int((ptype == ParticleType.FLUID).sum())
+            src, dst = candidates
+            into_wall = dst >= n_fluid
+            active = torch.zeros(pos.shape[0], dtype=torch.bool, device=pos.device)
+            active[dst[within & into_wall & (src < n_fluid)]] = True
+            within &= ~into_wall | active.index_select(0, dst)
+        keep = torch.nonzero(within).flatten()
         # nonzero + index_select rather than boolean indexing: ~2x faster on the CPU for (E, 3) arrays.
         return Graph(
             candidates.index_select(1, keep), rel.index_select(0, keep), dist.index_select(0, keep), radius

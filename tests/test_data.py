@@ -167,14 +167,13 @@ def test_pressure_samples_are_the_non_free_surface_particles(dataset):
                 fluid = rows < nf
                 # fluid: exactly the particles off the free surface
                 assert rows[fluid].tolist() == np.nonzero(inside[:nf])[0].tolist()
-                # boundary: walls (never dummies) off the surface; the solver computes n only for walls within
-                # reach of the fluid (its Verlet list: every wall within re_laplacian + skin / 2, none beyond
-                # re_laplacian + 3 skin / 2)
+                # boundary: walls (never dummies) off the surface, exactly those with a fluid particle within
+                # re_laplacian at x** (up to float32 rounding of the distance)
                 assert np.all(ptype[rows[~fluid]] == ParticleType.WALL) and np.all(inside[rows])
                 dist = torch.cdist(pos[nf:].double(), pos[:nf].double()).min(dim=1).values.numpy()
                 walls = (ptype[nf:] == ParticleType.WALL) & inside[nf:]
-                must = np.nonzero(walls & (dist < (settings.re_laplacian + 0.15) * l0))[0] + nf
-                never = np.nonzero(dist > (settings.re_laplacian + 0.45) * l0)[0] + nf
+                must = np.nonzero(walls & (dist < settings.re_laplacian * l0 * (1 - 1e-5)))[0] + nf
+                never = np.nonzero(dist > settings.re_laplacian * l0 * (1 + 1e-5))[0] + nf
                 assert set(must.tolist()) <= set(rows.tolist()) and not set(never.tolist()) & set(
                     rows.tolist()
                 )

@@ -159,8 +159,11 @@ def test_step_context_graphs_equal_brute_force_at_moved_positions(fluid_only):
         targets = torch.zeros(len(pos), dtype=torch.bool)
         if fluid_only:
             targets[: state.n_fluid] = True
-        else:  # the receivers of the candidate list in force (fluid + walls within reach of the fluid)
-            targets[torch.unique(sim.neighbors.candidates[1])] = True
+        else:  # fluid + the walls with a fluid particle within the cutoff (3.1 l0) at these positions
+            walls = state.ptype == 2
+            near = radius_graph(pos, 3.1 * 0.05, receivers=walls, backend="brute")
+            targets[: state.n_fluid] = True
+            targets[near[1][near[0] < state.n_fluid]] = True
         ref = radius_graph(pos, factor * 0.05, receivers=targets, backend="brute")
         assert torch.equal(g.edge_index, ref), (factor, shift)
         torch.testing.assert_close(g.dist, (pos[ref[0]] - pos[ref[1]]).norm(dim=1))

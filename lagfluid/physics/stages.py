@@ -240,9 +240,10 @@ class StepContext:
                         self._within[cache_key] = sub.within(radius)
                     return self._within[cache_key]
                 moved = float((pos[:nf] - old_pos[:nf]).norm(dim=1).max()) if nf else 0.0
-                if usable and radius + 2.0 * moved < full.radius:
-                    near = full.into_first(nf) if fluid_targets_only else full
-                    near = near.within(radius + 2.0 * moved)
+                # Only fluid-target graphs are derived: the wall targets of an all-target graph depend on
+                # where the fluid is now (see lagfluid.neighbor_list), which a smaller graph cannot tell.
+                if fluid_targets_only and radius + 2.0 * moved < full.radius:
+                    near = full.into_first(nf).within(radius + 2.0 * moved)
                     rel, dist = edge_vectors(pos, near.edge_index)
                     # each end moved at most `moved`: the new distances are below near.radius + 2 moved
                     return Graph(near.edge_index, rel, dist, near.radius + 2.0 * moved).within(radius)
