@@ -11,5 +11,9 @@ class SceneError(LagfluidError, ValueError):
     """A scene or particle state is invalid (raised early, naming the bad value)."""
 
 
+class ConfigError(LagfluidError, ValueError):
+    """A configuration value is invalid (the message names the key and the value)."""
+
+
 class RolloutError(LagfluidError, RuntimeError):
     """A rollout stopped by its guard: NaN/inf, a particle leaving the domain, Courant number too high."""

@@ -15,6 +15,8 @@ from collections.abc import Callable
 from importlib import import_module, metadata
 from typing import Any
 
+from lagfluid.errors import LagfluidError
+
 log = logging.getLogger(__name__)
 
 ENTRY_POINT_GROUP = "lagfluid.simulators"
@@ -29,7 +31,7 @@ _BUILTIN: dict[str, str] = {
 _REGISTERED: dict[str, SimulatorFactory] = {}
 
 
-class UnknownNameError(KeyError):
+class UnknownNameError(LagfluidError, KeyError):
     """A model or scene name that is not registered; the message lists the available names."""
 
     def __str__(self) -> str:

@@ -148,6 +148,7 @@ def rollout(
     write_every: int = 1,
     on_frame: Any = None,
     progress: bool = False,
+    reset: bool = True,
 ) -> tuple[ParticleState, dict[str, Any]]:
     """Advance ``state`` by ``steps`` steps of ``simulator``.
 
@@ -155,23 +156,26 @@ def rollout(
         simulator: any :class:`Simulator`.
         state: initial state (frame 0; written first when ``writer`` is given).
         steps: number of steps.
-        guard: run-time checks (default :class:`Guard`).
+        guard: run-time checks (default :class:`Guard`); every state that is written is checked first.
         writer: optional trajectory writer; frames ``0, k, 2k, ...`` and the last one are written.
         write_every: k.
         on_frame: optional callback ``f(state)`` for every written frame (metrics).
         progress: show a tqdm progress bar.
+        reset: call ``simulator.reset(state)`` first (per-scene constants, a fresh neighbour list); pass
+            False to continue a rollout in segments (warm neighbour list and PPE start).
 
     Returns:
-        The final state and a record with per-step wall times, per-stage times and diagnostics. On a guard
-        failure the :class:`RolloutError` carries that record as ``err.record`` and the final good state as
-        ``err.state``.
+        The final state and a record with per-step wall times, per-stage times and diagnostics. Any exception
+        raised during the loop carries that record as ``err.record`` and the last state that passed the
+        guard as ``err.state``.
     """
     guard = guard or Guard()
     if steps < 0:
         raise RolloutError(f"steps must be >= 0, got {steps}")
     if write_every < 1:
         raise RolloutError(f"write_every must be >= 1, got {write_every}")
-    simulator.reset(state)
+    if reset:
+        simulator.reset(state)
     record: dict[str, Any] = {"step_seconds": [], "stage_seconds": {}, "info": {}}
 
     def emit(s: ParticleState) -> None:
@@ -186,31 +190,33 @@ def rollout(
         if on_frame is not None:
             on_frame(s)
 
-    emit(state)
     bar = tqdm(total=steps, disable=not progress, desc=f"{simulator.name}", unit="step", dynamic_ncols=True)
     try:
+        emit(state)
         for k in range(1, steps + 1):
             _sync(state.device)
             start = time.perf_counter()
             new = simulator.step(state)
             _sync(state.device)
-            record["step_seconds"].append(time.perf_counter() - start)
+            elapsed = time.perf_counter() - start
+            write = k % write_every == 0 or k == steps
+            if write or k % guard.check_every == 0:
+                guard.check(new)
+            # only steps whose result was accepted are counted
+            record["step_seconds"].append(elapsed)
             for name, sec in simulator.last_timings.items():
                 record["stage_seconds"].setdefault(name, []).append(sec)
             for name, value in simulator.last_info.items():
                 record["info"].setdefault(name, []).append(value)
-            if k % guard.check_every == 0 or k == steps:
-                try:
-                    guard.check(new)
-                except RolloutError as err:
-                    err.record, err.state = record, state  # type: ignore[attr-defined]
-                    raise
             state = new
-            if k % write_every == 0 or k == steps:
+            if write:
                 emit(state)
             bar.update(1)
-            if k % 10 == 0 and record["step_seconds"]:
+            if k % 10 == 0:
                 bar.set_postfix(ms_per_step=f"{1e3 * median(record['step_seconds'][-10:]):.0f}")
+    except BaseException as err:
+        err.record, err.state = record, state  # type: ignore[attr-defined]
+        raise
     finally:
         bar.close()
     return state, record
@@ -241,8 +247,20 @@ def simulate(cfg: DictConfig) -> dict[str, Any]:
     torch.manual_seed(int(cfg.seed))
     if cfg.threads:
         torch.set_num_threads(int(cfg.threads))
+    if int(cfg.steps) < 0 or int(cfg.write_every) < 1:
+        raise RolloutError(
+            f"need steps >= 0 and write_every >= 1, got steps={cfg.steps}, write_every={cfg.write_every}"
+        )
     out_dir = Path(cfg.out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
+    # A failed run must not leave an earlier run's outputs looking like its own.
+    for name in ("rollout.h5", "metrics.json", "preview.png"):
+        (out_dir / name).unlink(missing_ok=True)
+    device = torch.device(cfg.device)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise RolloutError(
+            f"device={cfg.device} was asked for, but torch sees no CUDA device; use device=cpu"
+        )
     state = build_initial_state(cfg)
     simulator = build_simulator(cfg)
     settings = SolverSettings.from_config(cfg.solver)
@@ -304,6 +322,7 @@ def simulate(cfg: DictConfig) -> dict[str, Any]:
         snapshots["last"] = snap
 
     stop_reason, complete = "", True
+    record: dict[str, Any] = {"step_seconds": [], "stage_seconds": {}, "info": {}}
     start = time.perf_counter()
     try:
         _, record = rollout(
@@ -316,9 +335,10 @@ def simulate(cfg: DictConfig) -> dict[str, Any]:
             on_frame=on_frame,
             progress=bool(cfg.progress),
         )
-    except RolloutError as err:
-        stop_reason, complete = str(err), False
-        record = getattr(err, "record", {"step_seconds": [], "stage_seconds": {}, "info": {}})
+    except BaseException as err:  # a guard stop, a bug, Ctrl-C: the file says the run is incomplete and why
+        stop_reason = str(err) if isinstance(err, RolloutError) else f"{type(err).__name__}: {err}"
+        complete = False
+        record = getattr(err, "record", record)
         raise
     finally:
         for key, value in simulator.attributes().items():

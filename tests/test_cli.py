@@ -52,10 +52,11 @@ def test_struct_mode_rejects_typos():
 
 @pytest.mark.parametrize("model", available_models())
 @pytest.mark.parametrize("scene", _group_names("scene"))
-def test_every_model_and_scene_composes_and_instantiates(model, scene, authors_dam_grid):
+def test_every_model_and_scene_composes_and_instantiates(model, scene, request):
     from lagfluid.rollout import build_initial_state, build_simulator
 
-    extra = [f"scene.path={authors_dam_grid}"] if scene == "file" else []
+    # only the file scene needs ../shared; the other combinations run without it
+    extra = [f"scene.path={request.getfixturevalue('authors_dam_grid')}"] if scene == "file" else []
     cfg = _compose(f"model={model}", f"scene={scene}", "steps=1", "dt=0.001", "device=cpu", "seed=3", *extra)
     assert cfg.model.name == model and cfg.scene.name == scene and cfg.dt == 0.001
     state = build_initial_state(cfg)
@@ -126,3 +127,58 @@ def test_cli_guard_stop_is_one_clear_line(tmp_path):
     errors = [line for line in console.splitlines() if "ERROR" in line]
     assert len(errors) == 1 and "Courant number" in errors[0] and "reduce dt" in errors[0]
     assert "Traceback" not in console
+
+
+@pytest.mark.parametrize(
+    ("override", "message"),
+    [
+        ("solver.n0_from=foo", "solver.n0_from must be one of lattice, initial"),
+        ("solver.neighbors.skin=-1", "solver.neighbors.skin must be >= 0"),
+        ("solver.ppe.method=foo", "solver.ppe.method must be one of"),
+        ("write_every=0", "write_every >= 1"),
+        ("scene.builder=nope", "unknown scene 'nope'"),
+        ("dtype=float16", "unknown dtype 'float16'"),
+    ],
+)
+def test_bad_config_values_are_lagfluid_errors_naming_the_value(override, message, tmp_path):
+    from lagfluid.errors import LagfluidError
+    from lagfluid.rollout import simulate
+
+    with pytest.raises(LagfluidError, match=message):
+        simulate(_compose("experiment=debug", override, f"out_dir={tmp_path}"))
+
+
+def test_a_crash_mid_run_is_recorded_as_incomplete(tmp_path):
+    from lagfluid.data.store import read_trajectory
+    from lagfluid.models.mps_simulator import build_mps
+    from lagfluid.registry import _REGISTERED, register_simulator
+    from lagfluid.rollout import simulate
+
+    def broken(cfg):
+        sim = build_mps(cfg)
+        step, calls = sim.step, []
+
+        def failing_step(state):
+            calls.append(1)
+            if len(calls) == 3:
+                raise RuntimeError("disk on fire")
+            return step(state)
+
+        sim.step = failing_step
+        return sim
+
+    register_simulator("broken")(broken)
+    try:
+        cfg = _compose("experiment=debug", "steps=5", f"out_dir={tmp_path}")
+        cfg.model.name = "broken"
+        with pytest.raises(RuntimeError, match="disk on fire"):
+            simulate(cfg)
+    finally:
+        _REGISTERED.pop("broken")
+    traj = read_trajectory(tmp_path / "rollout.h5")
+    assert (
+        not bool(traj["attrs"]["complete"]) and "RuntimeError: disk on fire" in traj["attrs"]["stop_reason"]
+    )
+    assert traj["position"].shape[0] == 3  # frames 0, 1, 2: what was computed is kept
+    saved = json.loads((tmp_path / "metrics.json").read_text())
+    assert saved["complete"] is False and saved["steps"] == 2

@@ -167,3 +167,26 @@ def test_step_context_graphs_equal_brute_force_at_moved_positions(fluid_only):
         ref = radius_graph(pos, factor * 0.05, receivers=targets, backend="brute")
         assert torch.equal(g.edge_index, ref), (factor, shift)
         torch.testing.assert_close(g.dist, (pos[ref[0]] - pos[ref[1]]).norm(dim=1))
+
+
+def test_graph_cache_is_not_fooled_by_a_reused_buffer():
+    # A temporary freed and replaced by another tensor at the same address must not hit the cache.
+    from lagfluid.physics.stages import StageTimer, StepContext
+
+    state = build_scene("dam", fluid_size=[6, 6, 8], tank_size=[15, 8])
+    sim = mps()
+    sim.reset(state)
+    ctx = StepContext(state, sim.settings, sim.constants, sim.neighbors, StageTimer())
+    nf = state.n_fluid
+    for shift in (0.0, 0.01, 0.02):
+        pos = state.pos.clone()
+        pos[:nf, 0] += shift
+        g = ctx.graph(pos.clone(), 2.1)  # a temporary, freed right after the call
+        del g
+        moved = state.pos.clone()
+        moved[:nf, 2] += 0.013 + shift
+        g = ctx.graph(moved, 2.1, fluid_targets_only=True)
+        ref = radius_graph(moved, 2.1 * 0.05, receivers=state.fluid_mask, backend="brute")
+        assert torch.equal(g.edge_index, ref)
+    same = state.pos.clone()
+    assert ctx.graph(same, 3.1) is ctx.graph(same, 3.1)  # unchanged tensor: the cached graph

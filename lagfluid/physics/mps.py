@@ -90,14 +90,14 @@ class ExactPressure:
         s, c, params = ctx.settings, ctx.constants, ctx.params
         n_all, ptype = pos.shape[0], ctx.state.ptype
         g_lap = ctx.graph(pos, s.re_laplacian)
+        g_n = ctx.graph(pos, s.re_density)
+        g_div = ctx.graph(pos, s.re_gradient)
         with ctx.timer("pressure_assembly", pos.device):
-            g_n = ctx.graph(pos, s.re_density)
             n = ops.number_density(
                 pos, g_n.edge_index, ctx.radius(s.re_density), num_nodes=n_all, geometry=g_n.geometry
             )
             surface = n < s.surface_beta * c.n0
             solve_mask = (ptype != ParticleType.DUMMY) & ~surface
-            g_div = ctx.graph(pos, s.re_gradient)
             div = ops.divergence(
                 pos,
                 g_div.edge_index,

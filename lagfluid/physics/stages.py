@@ -31,6 +31,7 @@ from typing import Any, Protocol
 import torch
 from torch import Tensor
 
+from lagfluid.errors import ConfigError
 from lagfluid.neighbor_list import Graph, VerletNeighborList
 from lagfluid.neighbors import edge_vectors
 from lagfluid.physics import operators as ops
@@ -64,13 +65,29 @@ class SolverSettings:
     extra_radii: tuple[float, ...] = ()  # radii (in l0) that learned stages need beyond the MPS ones
 
     def __post_init__(self) -> None:
+        from lagfluid.neighbors import BACKENDS
+
+        def bad(key: str, value: object, expected: str) -> ConfigError:
+            return ConfigError(f"solver.{key} must be {expected}, got {value!r}")
+
         for name in ("re_density", "re_gradient", "re_laplacian", "re_collision"):
             if not getattr(self, name) > 0:
-                raise ValueError(f"solver.{name} must be > 0, got {getattr(self, name)}")
-        if self.n0_from not in ("lattice", "initial"):
-            raise ValueError(f"solver.n0_from must be 'lattice' or 'initial', got {self.n0_from!r}")
-        if self.ppe_tol_mode not in ("abs", "rel"):
-            raise ValueError(f"solver.ppe.tol_mode must be 'abs' or 'rel', got {self.ppe_tol_mode!r}")
+                raise bad(name, getattr(self, name), "> 0")
+        choices = {
+            "n0_from": (self.n0_from, ("lattice", "initial")),
+            "ppe.tol_mode": (self.ppe_tol_mode, ("abs", "rel")),
+            "ppe.method": (self.ppe_method, ("auto", "scipy_cg", "torch_cg", "pyamg")),
+            "neighbors.backend": (self.neighbor_backend, ("auto", *BACKENDS)),
+        }
+        for key, (value, allowed) in choices.items():
+            if value not in allowed:
+                raise bad(key, value, "one of " + ", ".join(allowed))
+        if not self.neighbor_skin >= 0:
+            raise bad("neighbors.skin", self.neighbor_skin, ">= 0")
+        if not (self.ppe_tol > 0 and self.ppe_maxiter >= 1):
+            raise bad("ppe.tol / ppe.maxiter", (self.ppe_tol, self.ppe_maxiter), "> 0 / >= 1")
+        if not 0 < self.surface_beta <= 1:
+            raise bad("surface_beta", self.surface_beta, "in (0, 1]")
 
     @classmethod
     def from_config(cls, cfg: Any) -> SolverSettings:
@@ -193,7 +210,8 @@ class StepContext:
     timer: StageTimer
     info: dict[str, float] = field(default_factory=dict)
     fields: dict[str, Tensor] | None = None
-    _full: tuple[Tensor, tuple[int, int], Graph, bool] | None = None
+    # (the positions tensor asked about, its version, a copy of its values, the graph, fluid targets only)
+    _full: tuple[Tensor, int, Tensor, Graph, bool] | None = None
     _within: dict[tuple[float, bool], Graph] = field(default_factory=dict)
 
     @property
@@ -229,11 +247,12 @@ class StepContext:
         radius = self.radius(factor)
         nf = self.n_fluid
         with self.timer("neighbors", pos.device):
-            key = (pos.data_ptr(), pos._version)
             if self._full is not None:
-                old_pos, old_key, full, full_fluid_only = self._full
+                src, version, old_pos, full, full_fluid_only = self._full
                 usable = full_fluid_only <= fluid_targets_only  # an all-target graph serves both requests
-                if old_key == key and usable:
+                # Same tensor object, not modified since: identity, not the data pointer, which a freed
+                # temporary's successor can reuse.
+                if pos is src and pos._version == version and usable:
                     cache_key = (radius, fluid_targets_only)
                     if cache_key not in self._within:  # stages at one set of positions share sub-graphs
                         sub = full.into_first(nf) if fluid_targets_only and not full_fluid_only else full
@@ -248,7 +267,7 @@ class StepContext:
                     # each end moved at most `moved`: the new distances are below near.radius + 2 moved
                     return Graph(near.edge_index, rel, dist, near.radius + 2.0 * moved).within(radius)
             full = self.neighbors.graph(pos, self.state.ptype, self.neighbors.cutoff, fluid_targets_only)
-            self._full = (pos.clone(), key, full, fluid_targets_only)
+            self._full = (pos, pos._version, pos.clone(), full, fluid_targets_only)
             self._within = {(radius, fluid_targets_only): full.within(radius)}
             return self._within[(radius, fluid_targets_only)]
 
@@ -343,6 +362,7 @@ class SplitStepSimulator:
         if self.constants is None or self.neighbors is None:
             self.reset(state)
         self.timer.reset()
+        builds = self.neighbors.builds
         ctx = StepContext(
             state,
             self.settings,
@@ -376,13 +396,15 @@ class SplitStepSimulator:
         if self.pressure is not None:
             pressure = self.pressure(ctx, pos, vel)
             ctx.record(pressure_unclamped=pressure)
+            g_grad = self.gradient_graph(ctx, pos)
             with self.timer("correction", device):
                 if self.settings.clamp_negative_pressure:
                     pressure = pressure.clamp_min(0.0)
-                acc_p = self.pressure_acceleration(ctx, pos, pressure)
+                acc_p = self.pressure_acceleration(ctx, pos, pressure, g_grad)
                 vel[:nf] += acc_p * dt
                 pos[:nf] += acc_p * dt * dt
 
+        ctx.info["list_rebuilds"] = float(self.neighbors.builds - builds)
         self.last_info = dict(ctx.info)
         self.last_fields = ctx.fields or {}
         return ParticleState(
@@ -397,23 +419,24 @@ class SplitStepSimulator:
             check=False,
         )
 
-    def pressure_acceleration(self, ctx: StepContext, pos: Tensor, pressure: Tensor) -> Tensor:
-        """``-grad_min(p) / rho`` on the fluid particles (N_fluid, 3).
+    def gradient_graph(self, ctx: StepContext, pos: Tensor) -> Graph:
+        """Edges into fluid particles within ``re_gradient``, dummy sources left out.
 
-        Dummy particles carry no pressure: they are left out of the gradient, which would otherwise see
-        their p = 0 as the neighbourhood minimum.
+        Dummy particles carry no pressure: in the gradient they would pose as the neighbourhood minimum p = 0.
         """
-        nf = ctx.n_fluid
         g = ctx.graph(pos, self.settings.re_gradient, fluid_targets_only=True)
-        g = g.select(ctx.state.ptype.index_select(0, g.edge_index[0]) != ParticleType.DUMMY)
+        return g.select(ctx.state.ptype.index_select(0, g.edge_index[0]) != ParticleType.DUMMY)
+
+    def pressure_acceleration(self, ctx: StepContext, pos: Tensor, pressure: Tensor, graph: Graph) -> Tensor:
+        """``-grad_min(p) / rho`` on the fluid particles (N_fluid, 3), over :meth:`gradient_graph`."""
         grad = ops.min_pressure_gradient(
             pos,
-            g.edge_index,
+            graph.edge_index,
             pressure,
             ctx.radius(self.settings.re_gradient),
             self.constants.n0,
             dim=ctx.params.dim,
-            num_nodes=nf,
-            geometry=g.geometry,
+            num_nodes=ctx.n_fluid,
+            geometry=graph.geometry,
         )
         return -grad / ctx.params.density
