@@ -62,6 +62,7 @@ class SolverSettings:
     ppe_warm_start: bool = True
     neighbor_backend: str = "auto"
     neighbor_skin: float = 0.3
+    wall_hops: int | None = 2
     extra_radii: tuple[float, ...] = ()  # radii (in l0) that learned stages need beyond the MPS ones
 
     def __post_init__(self) -> None:
@@ -82,6 +83,8 @@ class SolverSettings:
         for key, (value, allowed) in choices.items():
             if value not in allowed:
                 raise bad(key, value, "one of " + ", ".join(allowed))
+        if self.wall_hops is not None and not (isinstance(self.wall_hops, int) and self.wall_hops >= 1):
+            raise bad("neighbors.wall_hops", self.wall_hops, "an integer >= 1 or null (every wall)")
         if not self.neighbor_skin >= 0:
             raise bad("neighbors.skin", self.neighbor_skin, ">= 0")
         if not (self.ppe_tol > 0 and self.ppe_maxiter >= 1):
@@ -104,6 +107,7 @@ class SolverSettings:
             ppe_warm_start=bool(ppe.get("warm_start", True)),
             neighbor_backend=nb.get("backend", "auto"),
             neighbor_skin=float(nb.get("skin", 0.3)),
+            wall_hops=nb.get("wall_hops", 2),
         )
 
     @property
@@ -336,6 +340,7 @@ class SplitStepSimulator:
             self.settings.max_radius * state.params.l0,
             self.settings.neighbor_skin * state.params.l0,
             self.settings.neighbor_backend,
+            self.settings.wall_hops,
         )
 
     @property
