@@ -111,6 +111,29 @@ def scene_params(cfg: DictConfig) -> SceneParams:
     return SceneParams(**raw).with_overrides(dt=cfg.dt)
 
 
+def run_attributes(
+    state: ParticleState, cfg: DictConfig, model: str, scene: str, write_every: int
+) -> dict[str, Any]:
+    """Attributes every trajectory file carries: physical parameters and provenance (how it was made)."""
+    params = state.params
+    return {
+        "model": model,
+        "scene": scene,
+        "dt": params.dt,
+        "write_every": write_every,
+        "l0": params.l0,
+        "gravity": list(params.gravity),
+        "viscosity": params.viscosity,
+        "density": params.density,
+        "dim": params.dim,
+        "n_fluid": state.n_fluid,
+        "config": OmegaConf.to_yaml(cfg, resolve=True),
+        "version": lagfluid.__version__,
+        "git_commit": git_commit(),
+        "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+    }
+
+
 def build_initial_state(cfg: DictConfig) -> ParticleState:
     """The scene of ``cfg.scene``, on ``cfg.device`` in ``cfg.dtype``.
 
@@ -267,22 +290,7 @@ def simulate(cfg: DictConfig) -> dict[str, Any]:
     guard = Guard(float(cfg.solver.guard.max_courant), int(cfg.solver.guard.check_every))
     params, nf = state.params, state.n_fluid
     n0 = lattice_constants(params.l0, settings, params.dim).n0
-    attrs = {
-        "model": simulator.name,
-        "scene": str(cfg.scene.name),
-        "dt": params.dt,
-        "write_every": int(cfg.write_every),
-        "l0": params.l0,
-        "gravity": list(params.gravity),
-        "viscosity": params.viscosity,
-        "density": params.density,
-        "dim": params.dim,
-        "n_fluid": nf,
-        "config": OmegaConf.to_yaml(cfg, resolve=True),
-        "version": lagfluid.__version__,
-        "git_commit": git_commit(),
-        "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
-    }
+    attrs = run_attributes(state, cfg, simulator.name, str(cfg.scene.name), int(cfg.write_every))
     boundary = slice(nf, None)
     writer = TrajectoryWriter(
         out_dir / "rollout.h5",

@@ -96,12 +96,12 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 import lagfluid
-from lagfluid.data.store import FORMAT, FORMAT_VERSION, TrajectoryFileError, TrajectoryWriter
+from lagfluid.data.store import TrajectoryFileError, TrajectoryWriter, open_lagfluid_file
 from lagfluid.errors import LagfluidError, RolloutError, SceneError
 from lagfluid.models.mps_simulator import build_mps
 from lagfluid.physics.mps import CollisionRule
 from lagfluid.physics.stages import SolverSettings, SplitStepSimulator
-from lagfluid.rollout import Guard, git_commit, rollout, scene_params
+from lagfluid.rollout import Guard, git_commit, rollout, run_attributes, scene_params
 from lagfluid.scenes import build_scene
 from lagfluid.state import ParticleState, ParticleType, SceneParams
 
@@ -367,14 +367,7 @@ _REQUIRED = {
 
 
 def _check_scene_file(f: h5py.File, path: Path) -> None:
-    """Raise :class:`TrajectoryFileError` unless ``f`` is a scene file of this lagfluid's layout."""
-    if f.attrs.get("format") != FORMAT:
-        raise TrajectoryFileError(f"{path} is not a lagfluid file (format={f.attrs.get('format')!r})")
-    version = int(f.attrs.get("format_version", -1))
-    if version != FORMAT_VERSION:
-        raise TrajectoryFileError(
-            f"{path} has format_version {version}; this lagfluid reads {FORMAT_VERSION}"
-        )
+    """Raise :class:`TrajectoryFileError` unless ``f`` (format already checked) has a scene file's layout."""
     for group, names in _REQUIRED.items():
         if group not in f:
             raise TrajectoryFileError(f"{path} lacks the group '/{group}': not a scene file of task=generate")
@@ -410,13 +403,7 @@ def read_scene_info(path: str | os.PathLike) -> SceneInfo:
         TrajectoryFileError: missing, unreadable, another format or version, a missing group or array.
     """
     path = Path(path)
-    if not path.is_file():
-        raise TrajectoryFileError(f"scene file not found: {path}")
-    try:
-        f = h5py.File(path, "r")
-    except OSError as err:
-        raise TrajectoryFileError(f"cannot read {path} as HDF5 (corrupt or truncated?): {err}") from err
-    with f:
+    with open_lagfluid_file(path, "scene file") as f:
         _check_scene_file(f, path)
         g, s = f[GROUP], f["samples"]
         return SceneInfo(
@@ -673,28 +660,15 @@ def generate_scene(cfg: DictConfig, spec: DataSpec, index: int) -> Path:
     sim.reset(state)
     nf = state.n_fluid
     attrs = {
-        "model": sim.name,
-        "scene": spec.builder,
+        **run_attributes(state, cfg, sim.name, spec.builder, spec.sample_every),
         "scene_options": options,
         "scene_index": index,
         "seed": seed,
-        "dt": params.dt,
-        "write_every": spec.sample_every,
         "sample_every": spec.sample_every,
         "steps": spec.steps,
-        "l0": params.l0,
-        "gravity": list(params.gravity),
-        "viscosity": params.viscosity,
-        "density": params.density,
-        "dim": params.dim,
-        "n_fluid": nf,
         "bounds": state.bounds.cpu().numpy().astype(np.float64) if state.bounds is not None else None,
         "fingerprint": spec.fingerprint(index),
         "dataset": spec.name,
-        "config": OmegaConf.to_yaml(cfg, resolve=True),
-        "version": lagfluid.__version__,
-        "git_commit": git_commit(),
-        "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
         **sim.attributes(),
     }
     writer = TrajectoryWriter(

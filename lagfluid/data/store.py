@@ -124,6 +124,37 @@ class TrajectoryWriter:
         self.close(complete=exc is None, stop_reason=None if exc is None else str(exc))
 
 
+def open_lagfluid_file(path: str | os.PathLike, what: str = "trajectory") -> h5py.File:
+    """Open a lagfluid HDF5 file read-only, checking that it exists, is HDF5 and has this format version.
+
+    Args:
+        path: the file.
+        what: what the caller expects, for the messages ("trajectory", "scene file", ...).
+
+    Raises:
+        TrajectoryFileError: missing, unreadable (corrupt or truncated), not a lagfluid file, or another
+            ``format_version``; the message names the file.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise TrajectoryFileError(f"{what} not found: {path}")
+    try:
+        f = h5py.File(path, "r")
+    except OSError as err:
+        raise TrajectoryFileError(f"cannot read {path} as HDF5 (corrupt or truncated?): {err}") from err
+    if f.attrs.get("format") != FORMAT:
+        found = f.attrs.get("format")
+        f.close()
+        raise TrajectoryFileError(f"{path} is not a lagfluid {what} (format={found!r})")
+    version = int(f.attrs.get("format_version", -1))
+    if version != FORMAT_VERSION:
+        f.close()
+        raise TrajectoryFileError(
+            f"{path} has format_version {version}; this lagfluid reads {FORMAT_VERSION}"
+        )
+    return f
+
+
 def read_trajectory(path: str | os.PathLike, group: str = "00000") -> dict[str, Any]:
     """Load one trajectory into numpy arrays plus an ``attrs`` dict.
 
@@ -131,23 +162,8 @@ def read_trajectory(path: str | os.PathLike, group: str = "00000") -> dict[str, 
         TrajectoryFileError: the file is missing, unreadable, not a lagfluid file, of another format version,
             or lacks the group or an array.
     """
-    path = Path(path)
-    if not path.is_file():
-        raise TrajectoryFileError(f"trajectory file not found: {path}")
-    try:
-        f = h5py.File(path, "r")
-    except OSError as err:
-        raise TrajectoryFileError(f"cannot read {path} as HDF5 (corrupt or truncated?): {err}") from err
+    f = open_lagfluid_file(path, "trajectory")
     with f:
-        if f.attrs.get("format") != FORMAT:
-            raise TrajectoryFileError(
-                f"{path} is not a lagfluid trajectory (format={f.attrs.get('format')!r})"
-            )
-        version = int(f.attrs.get("format_version", -1))
-        if version != FORMAT_VERSION:
-            raise TrajectoryFileError(
-                f"{path} has format_version {version}; this lagfluid reads {FORMAT_VERSION}"
-            )
         if group not in f:
             raise TrajectoryFileError(f"{path} has no trajectory group '{group}' (groups: {sorted(f)})")
         g = f[group]
