@@ -103,6 +103,9 @@ class ParticleState:
     def __post_init__(self, check: bool) -> None:
         if self.pressure is None:
             self.pressure = torch.zeros(self.pos.shape[0], dtype=self.pos.dtype, device=self.pos.device)
+        # Counted once: asked for in every stage, and on CUDA each count would be a host synchronisation.
+        # (ptype is never modified in place; a state with other particles is a new state.)
+        self._n_fluid = int((self.ptype == ParticleType.FLUID).sum())
         if check:
             self.validate()
 
@@ -148,7 +151,7 @@ class ParticleState:
     @property
     def n_fluid(self) -> int:
         """Number of fluid particles (they are the first ``n_fluid`` rows)."""
-        return int((self.ptype == ParticleType.FLUID).sum())
+        return self._n_fluid
 
     @property
     def fluid_mask(self) -> Tensor:

@@ -21,6 +21,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from lagfluid.neighbors import edge_vectors
+
 __all__ = [
     "divergence",
     "edge_geometry",
@@ -80,9 +82,8 @@ def edge_geometry(pos: Tensor, edge_index: Tensor, geometry: Geometry | None = N
     """
     if geometry is not None:
         return geometry
-    src, dst = edge_index[0], edge_index[1]
-    rel = pos.index_select(0, src) - pos.index_select(0, dst)
-    return rel, torch.linalg.vector_norm(rel, dim=-1)
+    # The neighbour search's own formula, so a distance is the same number wherever it is computed.
+    return edge_vectors(pos, edge_index)
 
 
 def _num_nodes(pos: Tensor, num_nodes: int | None) -> int:

@@ -144,11 +144,19 @@ def load_grid(
     check_particles(pos, vel, ptype, params.l0, bounds, min_distance=min_distance, source=str(path))
     fluid = pos[ptype == ParticleType.FLUID]
     if len(fluid) > 1:
-        # A spacing other than l0 is legal (n0 is measured from the initial frame) but almost always
-        # a units mistake, so say so.
+        # The solver's reference densities (solver.n0_from=lattice, the default) assume spacing l0, so a
+        # grid at another spacing gives wrong pressures unless l0 matches it or n0 is measured from the
+        # initial frame (solver.n0_from=initial). Usually a units mistake: say so loudly.
         spacing = float(np.median(cKDTree(fluid).query(fluid, k=2)[0][:, 1]))
         if abs(spacing / params.l0 - 1.0) > 0.01:
-            log.warning("%s: fluid spacing %.4g m differs from l0 = %.4g m", path, spacing, params.l0)
+            log.warning(
+                "%s: fluid spacing %.4g m differs from l0 = %.4g m; set scene.params.l0=%.4g "
+                "(or solver.n0_from=initial), otherwise n0 and the pressures are wrong",
+                path,
+                spacing,
+                params.l0,
+                spacing,
+            )
     state = ParticleState.from_arrays(
         torch.from_numpy(pos),
         torch.from_numpy(vel),
