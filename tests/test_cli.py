@@ -182,3 +182,26 @@ def test_a_crash_mid_run_is_recorded_as_incomplete(tmp_path):
     assert traj["position"].shape[0] == 3  # frames 0, 1, 2: what was computed is kept
     saved = json.loads((tmp_path / "metrics.json").read_text())
     assert saved["complete"] is False and saved["steps"] == 2
+
+
+def test_plugins_register_through_the_entry_point_group(monkeypatch):
+    from importlib import metadata
+
+    import lagfluid.registry as registry
+
+    plugin = metadata.EntryPoint(
+        name="plugin_sim", value="lagfluid.models.mps_simulator:build_mps", group=registry.ENTRY_POINT_GROUP
+    )
+    real = metadata.entry_points
+
+    def fake(**kwargs):
+        if kwargs.get("group") == registry.ENTRY_POINT_GROUP:
+            return metadata.EntryPoints([plugin])
+        return real(**kwargs)
+
+    monkeypatch.setattr(registry.metadata, "entry_points", fake)
+    assert "plugin_sim" in registry.available_simulators()
+    from lagfluid.models.mps_simulator import build_mps
+
+    assert registry.get_simulator_factory("plugin_sim") is build_mps
+    assert check_command_line(["model=plugin_sim"]) is None  # selectable on the command line
