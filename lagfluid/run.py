@@ -94,7 +94,7 @@ def main() -> None:
     """Entry point of ``python -m lagfluid.run``."""
     problem = check_command_line(sys.argv[1:])
     if problem:
-        print(problem, file=sys.stderr)
+        sys.stderr.write(problem + "\n")  # before Hydra has set up logging: one plain line
         sys.exit(2)
     _register_plugin_configs()
     _hydra_main()

@@ -207,20 +207,25 @@ def test_loop(backend):
 @pytest.mark.parametrize("backend", [*FAST, "brute"])
 def test_overflow_raises_never_truncates(backend):
     pos = lattice(7)
-    r = 2.1 * L0  # interior degree 32
+    r, degree = 2.1 * L0, 32  # interior degree at 2.1 l0
     with pytest.raises(NeighborOverflowError, match=r"32 neighbours.*max_num_neighbors=31") as err:
         radius_graph(pos, r, max_num_neighbors=31, backend=backend)
     assert err.value.count == 32 and err.value.cap == 31 and isinstance(err.value, ValueError)
     assert f"particle {err.value.node}" in str(err.value)
-    assert torch.equal(radius_graph(pos, r, max_num_neighbors=32, backend=backend), oracle(pos, r))
+    assert torch.equal(radius_graph(pos, r, max_num_neighbors=degree, backend=backend), oracle(pos, r))
     with pytest.raises(NeighborOverflowError, match="33 neighbours"):
-        radius_graph(pos, r, max_num_neighbors=32, loop=True, backend=backend)
+        radius_graph(pos, r, max_num_neighbors=degree, loop=True, backend=backend)
+
+
+TC_DEFAULT_CAP = 32  # torch_cluster.radius's silent default cap
 
 
 def fake_torch_cluster(calls: list) -> SimpleNamespace:
     """Stand-in with torch_cluster.radius's contract: sorted batches, silent truncation at the cap."""
 
-    def radius(x, y, r, batch_x=None, batch_y=None, max_num_neighbors=32, num_workers=1, batch_size=None):
+    def radius(
+        x, y, r, batch_x=None, batch_y=None, max_num_neighbors=TC_DEFAULT_CAP, num_workers=1, batch_size=None
+    ):
         if batch_x is not None:
             assert bool((batch_x[1:] >= batch_x[:-1]).all()) and bool((batch_y[1:] >= batch_y[:-1]).all())
         mask = torch.cdist(y.double(), x.double()) <= r
