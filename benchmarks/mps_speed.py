@@ -13,8 +13,7 @@ from __future__ import annotations
 
 import argparse
 import csv
-import platform
-import sys
+import os
 import time
 from pathlib import Path
 from statistics import median
@@ -22,7 +21,8 @@ from statistics import median
 import torch
 from hydra import compose, initialize_config_dir
 
-from lagfluid.rollout import build_initial_state, build_simulator, git_commit, rollout
+from benchmarks.provenance import markdown, provenance
+from lagfluid.rollout import build_initial_state, build_simulator, rollout
 from lagfluid.run import CONF_DIR
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -68,6 +68,7 @@ def main(argv: list[str] | None = None) -> None:
     args = ap.parse_args(argv)
     if args.threads:
         torch.set_num_threads(args.threads)
+    load_before = os.getloadavg()[0]
     rows = [measure(s, args.warmup, args.steps, args.device, args.override) for s in args.scenes]
     header = list(rows[0])
     lines = [
@@ -75,20 +76,16 @@ def main(argv: list[str] | None = None) -> None:
         "| " + " | ".join("---" for _ in header) + " |",
         *("| " + " | ".join(str(r[k]) for k in header) + " |" for r in rows),
     ]
-    provenance = (
-        f"Machine: {platform.platform()}, {torch.get_num_threads()} torch threads, {args.device}; "
-        f"torch {torch.__version__}; commit {git_commit() or 'n/a'}; {time.strftime('%Y-%m-%d %H:%M')}.\n"
-        f"Command: `python -m benchmarks.mps_speed {' '.join(sys.argv[1:] if argv is None else argv)}`"
-    )
+    prov = markdown(provenance("benchmarks.mps_speed", load_before, args.device))
     print("\n".join(lines))
-    print(provenance)
+    print(prov)
     if not args.no_save:
         RESULTS.mkdir(parents=True, exist_ok=True)
         (RESULTS / "mps_speed.md").write_text(
             "# MPS time per step by stage\n\nMedian over the timed steps (after warm-up). "
             "Stages: neighbour search and filtering, advection (viscosity + gravity), collision, "
             "PPE assembly (number density, divergence, matrix), PPE solve (Jacobi-CG), "
-            "correction (pressure gradient).\n\n" + "\n".join(lines) + "\n\n" + provenance + "\n"
+            "correction (pressure gradient).\n\n" + "\n".join(lines) + "\n\n" + prov + "\n"
         )
         with open(RESULTS / "mps_speed.csv", "w", newline="") as f:
             writer = csv.DictWriter(f, fieldnames=header)

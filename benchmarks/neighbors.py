@@ -11,21 +11,16 @@ from __future__ import annotations
 
 import argparse
 import csv
-import datetime as dt
 import logging
 import math
 import os
-import platform
-import shlex
 import statistics
-import subprocess
-import sys
 import time
 from pathlib import Path
 
-import scipy
 import torch
 
+from benchmarks.provenance import markdown, provenance
 from lagfluid.neighbors import available_backends, radius_graph
 
 L0 = 0.05
@@ -58,37 +53,13 @@ def time_once(pos: torch.Tensor, r: float, backend: str) -> tuple[float, torch.T
     return time.perf_counter() - start, edges
 
 
-def git_commit() -> str:
-    try:
-        root = Path(__file__).resolve().parents[1]
-        sha = subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"], cwd=root, capture_output=True, text=True, check=True
-        ).stdout.strip()
-        dirty = subprocess.run(
-            ["git", "status", "--porcelain"], cwd=root, capture_output=True, text=True
-        ).stdout.strip()
-        return sha + (" + uncommitted changes in the working tree" if dirty else "")
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
-
-
-def provenance(args: argparse.Namespace, load_before: tuple[float, ...]) -> dict[str, str]:
-    device = torch.device(args.device)
-    machine = f"{platform.platform()}, {platform.machine()}, {os.cpu_count()} CPUs"
-    if device.type == "cuda":
-        machine += f", {torch.cuda.get_device_name(device)}"
-    return {
-        "date": dt.datetime.now(dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
-        "machine": machine,
-        "versions": (
-            f"python {platform.python_version()}, torch {torch.__version__}, scipy {scipy.__version__}"
-        ),
-        "torch threads": str(torch.get_num_threads()),
-        "git commit": git_commit(),
-        "command": ("python -m benchmarks.neighbors " + shlex.join(sys.argv[1:])).rstrip(),
-        "load average (1 min) before / after": f"{load_before[0]:.2f} / {os.getloadavg()[0]:.2f}",
-        "particles": f"jittered simple-cubic block, l0 = {L0} m, jitter 0.1 l0, {args.dtype}",
-    }
+def run_provenance(args: argparse.Namespace, load_before: tuple[float, ...]) -> dict[str, str]:
+    return provenance(
+        "benchmarks.neighbors",
+        load_before[0],
+        args.device,
+        particles=f"jittered simple-cubic block, l0 = {L0} m, jitter 0.1 l0, {args.dtype}",
+    )
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
@@ -137,7 +108,7 @@ def main(argv: list[str] | None = None) -> list[dict[str, object]]:
                 }
                 rows.append(row)
                 log.info("%s", row)
-    write(rows, provenance(args, load_before), args.out)
+    write(rows, run_provenance(args, load_before), args.out)
     return rows
 
 
@@ -156,7 +127,7 @@ def write(rows: list[dict[str, object]], prov: dict[str, str], stem: Path) -> No
     stem.parent.mkdir(parents=True, exist_ok=True)
     table = markdown_table(rows)
     print(table)  # the command's output is the table
-    notes = "\n".join(f"- {k}: {v}" for k, v in prov.items())
+    notes = markdown(prov)
     load = max(float(x) for x in prov["load average (1 min) before / after"].split(" / "))
     if load > 0.5 * (os.cpu_count() or 1):
         notes += (

@@ -21,11 +21,8 @@ from __future__ import annotations
 
 import argparse
 import csv
-import datetime as dt
 import math
 import os
-import platform
-import shlex
 import sys
 import time
 from dataclasses import dataclass, field
@@ -33,11 +30,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import scipy
 import torch
 from omegaconf import OmegaConf
 
-from benchmarks.neighbors import git_commit
+from benchmarks.provenance import markdown, provenance
 from lagfluid.errors import RolloutError
 from lagfluid.metrics import field_metrics
 from lagfluid.models.mps_simulator import build_mps
@@ -703,22 +699,13 @@ def check_mass(logs: list[RunLog]) -> list[Check]:
 
 
 # ----------------------------------------------------------------------------------------- report
-def provenance(args: argparse.Namespace, runtime: float, load_before: float) -> dict[str, str]:
-    return {
-        "date": dt.datetime.now(dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
-        "machine": f"{platform.platform()}, {platform.machine()}, {os.cpu_count()} CPUs",
-        "versions": (
-            f"python {platform.python_version()}, torch {torch.__version__}, scipy {scipy.__version__}"
-        ),
-        "torch threads": str(torch.get_num_threads()),
-        "git commit": git_commit(),
-        "command": ("python -m benchmarks.validate_mps " + shlex.join(sys.argv[1:])).rstrip(),
-        "runtime": f"{runtime:.0f} s ({runtime / 60:.1f} min)",
-        "load average (1 min) before / after": f"{load_before:.2f} / {os.getloadavg()[0]:.2f}",
-        "solver": (
-            "conf/solver/mps.yaml (authors' coefficients, n0 from the ideal lattice), scene dtype float32"
-        ),
-    }
+def run_provenance(runtime: float, load_before: float) -> dict[str, str]:
+    return provenance(
+        "benchmarks.validate_mps",
+        load_before,
+        runtime=f"{runtime:.0f} s ({runtime / 60:.1f} min)",
+        solver="conf/solver/mps.yaml (authors' coefficients, n0 from the ideal lattice), scene dtype float32",
+    )
 
 
 def write_report(checks: list[Check], prov: dict[str, str], stem: Path, extra: str) -> None:
@@ -727,7 +714,7 @@ def write_report(checks: list[Check], prov: dict[str, str], stem: Path, extra: s
     for c in checks:
         lines.append(f"| {c.check} | {c.quantity} | {c.measured} | {c.criterion} | **{c.status}** |")
     n_fail = sum(c.status == "FAIL" for c in checks)
-    notes = "\n".join(f"- {k}: {v}" for k, v in prov.items())
+    notes = markdown(prov)
     stem.with_suffix(".md").write_text(
         "# MPS solver: physical validation\n\n"
         f"{notes}\n\n**{n_fail} check(s) failed** of {sum(c.status != 'INFO' for c in checks)} pass/fail "
@@ -818,7 +805,7 @@ def main(argv: list[str] | None = None) -> int:
         "Koshizuka & Oka (1996) and the shallow-water bound; dt robustness of the small dam\n"
     )
     runtime = time.perf_counter() - start
-    write_report(checks, provenance(args, runtime, load_before), stem, extra)
+    write_report(checks, run_provenance(runtime, load_before), stem, extra)
     n_fail = sum(c.status == "FAIL" for c in checks)
     print(f"{n_fail} check(s) failed; runtime {runtime:.0f} s; report {stem.with_suffix('.md')}")
     return 1 if n_fail else 0
