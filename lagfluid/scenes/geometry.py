@@ -40,8 +40,8 @@ from lagfluid.scenes.validation import (
     MIN_DISTANCE,
     as_vector,
     check_choice,
-    check_particles,
     check_positive_int,
+    validated_state,
 )
 from lagfluid.state import ParticleState, ParticleType, SceneError, SceneParams
 
@@ -515,15 +515,7 @@ class Scene:
         ptype = np.concatenate([np.full(len(fluid_xyz), int(ParticleType.FLUID), dtype=np.int64), bnd_type])
         bounds = self.bounds(fluid_xyz)
         bounds = None if bounds is None else bounds * l0
-        check_particles(pos, vel, ptype, l0, bounds, min_distance=min_distance, source=f"scene '{self.name}'")
-        state = ParticleState.from_arrays(
-            torch.from_numpy(pos),
-            torch.from_numpy(vel),
-            torch.from_numpy(ptype),
-            params=params,
-            bounds=None if bounds is None else torch.from_numpy(bounds),
-            dtype=dtype,
-        )
+        state = validated_state(pos, vel, ptype, params, bounds, dtype, min_distance, f"scene '{self.name}'")
         n_wall = int((bnd_type == ParticleType.WALL).sum())
         log.info(
             "scene '%s'%s: %d fluid, %d wall, %d dummy particles (built in %.2f s)",

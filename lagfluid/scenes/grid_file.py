@@ -20,7 +20,7 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
-from lagfluid.scenes.validation import MIN_DISTANCE, check_particles
+from lagfluid.scenes.validation import MIN_DISTANCE, validated_state
 from lagfluid.state import ParticleState, ParticleType, SceneError, SceneParams
 
 __all__ = ["from_file", "grid_bounds", "load_grid", "read_grid", "save_grid"]
@@ -141,7 +141,7 @@ def load_grid(
     params = params or SceneParams()
     pos, vel, ptype = read_grid(path)
     bounds = grid_bounds(pos, ptype) if np.isfinite(pos).all() else None
-    check_particles(pos, vel, ptype, params.l0, bounds, min_distance=min_distance, source=str(path))
+    state = validated_state(pos, vel, ptype, params, bounds, dtype, min_distance, str(path))
     fluid = pos[ptype == ParticleType.FLUID]
     if len(fluid) > 1:
         # The solver's reference densities (solver.n0_from=lattice, the default) assume spacing l0, so a
@@ -157,14 +157,6 @@ def load_grid(
                 params.l0,
                 spacing,
             )
-    state = ParticleState.from_arrays(
-        torch.from_numpy(pos),
-        torch.from_numpy(vel),
-        torch.from_numpy(ptype),
-        params=params,
-        bounds=None if bounds is None else torch.from_numpy(bounds),
-        dtype=dtype,
-    )
     log.info(
         "grid %s: %d fluid, %d wall, %d dummy particles",
         path,

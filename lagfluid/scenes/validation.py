@@ -11,9 +11,10 @@ import math
 from collections.abc import Sequence
 
 import numpy as np
+import torch
 from scipy.spatial import cKDTree
 
-from lagfluid.state import ParticleType, SceneError
+from lagfluid.state import ParticleState, ParticleType, SceneError, SceneParams
 
 __all__ = ["MIN_DISTANCE", "as_vector", "check_choice", "check_particles", "check_positive_int"]
 
@@ -165,3 +166,36 @@ def check_choice(name: str, value: object, choices: Sequence[str]) -> str:
     if value not in choices:
         raise SceneError(f"{name} must be one of {', '.join(map(repr, choices))}; got {value!r}")
     return str(value)
+
+
+def validated_state(
+    pos: np.ndarray,
+    vel: np.ndarray,
+    ptype: np.ndarray,
+    params: SceneParams,
+    bounds: np.ndarray | None,
+    dtype: torch.dtype,
+    min_distance: float = MIN_DISTANCE,
+    source: str = "scene",
+) -> ParticleState:
+    """:func:`check_particles`, then the :class:`ParticleState` of these arrays (sorted by type).
+
+    Args:
+        pos: (N, 3) positions, m.
+        vel: (N, 3) velocities, m/s.
+        ptype: (N,) particle types.
+        params: physical parameters (``l0`` scales ``min_distance``).
+        bounds: optional (2, 3) domain box, m.
+        dtype: floating dtype of the state.
+        min_distance: closest allowed particle distance, l0.
+        source: what the particles came from, for the messages.
+    """
+    check_particles(pos, vel, ptype, params.l0, bounds, min_distance=min_distance, source=source)
+    return ParticleState.from_arrays(
+        torch.from_numpy(pos),
+        torch.from_numpy(vel),
+        torch.from_numpy(ptype),
+        params=params,
+        bounds=None if bounds is None else torch.from_numpy(bounds),
+        dtype=dtype,
+    )
