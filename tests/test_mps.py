@@ -205,3 +205,10 @@ def test_two_wall_hops_match_solving_every_wall():
     peak = float(runs[None].abs().max())
     assert peak > 1000.0
     assert float((runs[2] - runs[None]).abs().max()) < 0.005 * peak
+
+
+def test_solver_yaml_defaults_are_the_dataclass_defaults():
+    # conf/solver/mps.yaml documents the authors' values; the dataclass must not silently differ.
+    assert SolverSettings.from_config(SOLVER) == SolverSettings()
+    assert SolverSettings.from_config({"neighbors": {"wall_hops": None}}).wall_hops is None
+    assert SolverSettings.from_config({"ppe": {"tol": "1e-8"}}).ppe_tol == 1e-8  # YAML's string 1e-8

@@ -37,6 +37,18 @@ from lagfluid.neighbors import edge_vectors
 from lagfluid.physics import operators as ops
 from lagfluid.state import ParticleState, ParticleType, SceneParams
 
+# (config group, key) -> (SolverSettings field, type)
+_NESTED_KEYS: dict[tuple[str, str], tuple[str, type]] = {
+    ("ppe", "method"): ("ppe_method", str),
+    ("ppe", "tol"): ("ppe_tol", float),
+    ("ppe", "tol_mode"): ("ppe_tol_mode", str),
+    ("ppe", "maxiter"): ("ppe_maxiter", int),
+    ("ppe", "warm_start"): ("ppe_warm_start", bool),
+    ("neighbors", "backend"): ("neighbor_backend", str),
+    ("neighbors", "skin"): ("neighbor_skin", float),
+    ("neighbors", "wall_hops"): ("wall_hops", int),
+}
+
 
 @dataclass(frozen=True)
 class SolverSettings:
@@ -95,20 +107,16 @@ class SolverSettings:
     @classmethod
     def from_config(cls, cfg: Any) -> SolverSettings:
         """Build from a ``solver`` config node (an ``omegaconf.DictConfig`` or a plain dict)."""
-        ppe = cfg.get("ppe", {}) or {}
-        nb = cfg.get("neighbors", {}) or {}
-        plain = {k: cfg[k] for k in cls.__dataclass_fields__ if k in cfg and k not in ("extra_radii",)}
-        return cls(
-            **plain,
-            ppe_method=ppe.get("method", "auto"),
-            ppe_tol=float(ppe.get("tol", 1e-6)),
-            ppe_tol_mode=ppe.get("tol_mode", "abs"),
-            ppe_maxiter=int(ppe.get("maxiter", 200)),
-            ppe_warm_start=bool(ppe.get("warm_start", True)),
-            neighbor_backend=nb.get("backend", "auto"),
-            neighbor_skin=float(nb.get("skin", 0.3)),
-            wall_hops=nb.get("wall_hops", 2),
-        )
+        plain = {k: cfg[k] for k in cls.__dataclass_fields__ if k in cfg and k != "extra_radii"}
+        # Nested keys present in the config; absent ones keep the dataclass defaults (one source of truth).
+        # The casts matter: YAML reads 1e-6 (no dot) as a string.
+        for (group, key), (name, cast) in _NESTED_KEYS.items():
+            node = cfg.get(group) or {}
+            if key in node and node[key] is not None:
+                plain[name] = cast(node[key])
+            elif key in node:  # an explicit null, e.g. neighbors.wall_hops: null
+                plain[name] = None
+        return cls(**plain)
 
     @property
     def max_radius(self) -> float:
