@@ -27,6 +27,9 @@ SimulatorFactory = Callable[[Any], Any]
 # (e.g. to validate a command line) stays cheap.
 _BUILTIN: dict[str, str] = {
     "mps": "lagfluid.models.mps_simulator:build_mps",
+    "fgn": "lagfluid.models.fgn_simulator:build_split_step",
+    "hybrid": "lagfluid.models.fgn_simulator:build_split_step",
+    "fgn_original": "lagfluid.models.fgn_simulator:build_split_step",
 }
 _REGISTERED: dict[str, SimulatorFactory] = {}
 

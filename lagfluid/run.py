@@ -21,7 +21,7 @@ from lagfluid.errors import LagfluidError
 log = logging.getLogger("lagfluid")
 
 CONF_DIR = Path(__file__).resolve().parent.parent / "conf"
-TASKS = ("simulate", "generate")
+TASKS = ("simulate", "generate", "train")
 
 
 def _group_names(group: str) -> list[str]:
@@ -42,6 +42,7 @@ def check_command_line(argv: Sequence[str]) -> str | None:
         "scene": lambda: _group_names("scene"),
         "data": lambda: _group_names("data"),
         "task": lambda: list(TASKS),
+        "stage": lambda: ["advection", "collision", "pressure", "all"],
     }
     for arg in argv:
         key, sep, value = arg.partition("=")
@@ -75,6 +76,10 @@ def dispatch(cfg: DictConfig) -> None:
         from lagfluid.data.generate import generate
 
         generate(cfg)
+    elif cfg.task == "train":
+        from lagfluid.train import train
+
+        train(cfg)
     else:  # guarded by check_command_line and the config
         raise LagfluidError(f"unknown task '{cfg.task}'; available: {', '.join(TASKS)}")
 

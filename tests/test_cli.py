@@ -50,13 +50,33 @@ def test_struct_mode_rejects_typos():
         _compose("stepz=3")
 
 
+@pytest.fixture(scope="module")
+def untrained_weights(tmp_path_factory):
+    """Checkpoints of freshly initialised FGN networks (``model=fgn``/``hybrid`` need weights to build)."""
+    import yaml
+
+    from lagfluid.models.checkpoint import build_network, network_payload, save_checkpoint
+
+    out = tmp_path_factory.mktemp("weights")
+    options = yaml.safe_load((CONF_DIR / "model" / "fgn.yaml").read_text())
+    for kind in ("advection", "collision", "pressure"):
+        net = build_network(kind, options[kind])
+        save_checkpoint(out / f"{kind}.pt", network_payload(net, kind, options[kind], 0, {}))
+    return out
+
+
 @pytest.mark.parametrize("model", available_models())
 @pytest.mark.parametrize("scene", _group_names("scene"))
 def test_every_model_and_scene_composes_and_instantiates(model, scene, request):
     from lagfluid.rollout import build_initial_state, build_simulator
 
-    # only the file scene needs ../shared; the other combinations run without it
+    # only the file scene and the authors' weights need ../shared; the other combinations run without it
     extra = [f"scene.path={request.getfixturevalue('authors_dam_grid')}"] if scene == "file" else []
+    if model in ("fgn", "hybrid"):
+        extra.append(f"model.weights={request.getfixturevalue('untrained_weights')}")
+    if model == "fgn_original":
+        grid = request.getfixturevalue("authors_dam_grid")
+        extra.append(f"model.weights={grid.parents[1] / 'checkpoints'}")
     cfg = _compose(f"model={model}", f"scene={scene}", "steps=1", "dt=0.001", "device=cpu", "seed=3", *extra)
     assert cfg.model.name == model and cfg.scene.name == scene and cfg.dt == 0.001
     state = build_initial_state(cfg)

@@ -1,0 +1,99 @@
+"""Load the FGN authors' published weights (``fgn_original/checkpoints``) into our modules.
+
+Their files are plain arrays named as in their ``state_dict`` (``adv_net.npz``, ``col_net.npz``,
+``prs_net.npz``) plus the mean and variance of each standard scaler (``*.scalers.json``). Our modules keep
+their layout (see :mod:`lagfluid.models.fgn`), so loading is a rename table, checked strictly: a missing,
+extra or mis-shaped array is an error naming it. Their architecture is ``conf/model/fgn_original.yaml``
+(identity activations in the node networks: their ``nn.LeakyReLU(True)`` sets ``negative_slope=1``).
+
+The package never needs ``../shared`` at run time: the directory is a config value (``model.weights``).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from lagfluid.models.checkpoint import CheckpointError, build_network
+
+FILES = {"advection": "adv_net", "collision": "col_net", "pressure": "prs_net"}
+# Parts of their collision layer that their forward pass computes but never uses (the node update).
+_UNUSED = re.compile(r"mp_layers\.\d+\.1\.(edge_mlp|node_linear2|msg_linear)\.")
+_RENAMES = (
+    (re.compile(r"^(mp_layers\.\d+\.1)\.node_mlp\."), r"\1.mlp."),
+    (re.compile(r"^(mp_layers\.\d+\.1)\.node_linear1\."), r"\1.node_linear."),
+)
+
+
+def _their_arrays(kind: str, directory: Path) -> dict[str, np.ndarray]:
+    path = directory / f"{FILES[kind]}.npz"
+    if not path.is_file():
+        raise CheckpointError(f"authors' {kind} weights not found: {path} (model.weights={directory})")
+    try:
+        with np.load(path) as data:
+            return {k: data[k] for k in data.files}
+    except Exception as err:
+        raise CheckpointError(f"cannot read {path}: {type(err).__name__}: {err}") from err
+
+
+def _scalers(kind: str, directory: Path) -> dict[str, dict[str, list[float]]]:
+    path = directory / f"{FILES[kind]}.scalers.json"
+    if kind == "collision":
+        return {}  # their collision net takes raw m/s and has no scaler
+    if not path.is_file():
+        raise CheckpointError(f"authors' {kind} scalers not found: {path}")
+    return json.loads(path.read_text())
+
+
+def _set(standardizer: nn.Module, scaler: dict[str, list[float]]) -> None:
+    standardizer.set(scaler["mean"], np.sqrt(np.asarray(scaler["var"], dtype=np.float64)))
+
+
+def original_state_dict(kind: str, net: nn.Module, directory: Path) -> dict[str, torch.Tensor]:
+    """Their arrays renamed onto ``net``'s parameter names (node nets sit under ``net.``)."""
+    state: dict[str, torch.Tensor] = {}
+    for name, array in _their_arrays(kind, directory).items():
+        if _UNUSED.search(name):
+            continue
+        for pattern, repl in _RENAMES:
+            name = pattern.sub(repl, name)
+        state[name if kind == "collision" else f"net.{name}"] = torch.from_numpy(np.asarray(array))
+    return state
+
+
+def load_original_network(kind: str, options: dict[str, Any], directory: str | os.PathLike) -> nn.Module:
+    """Build ``kind`` with ``options`` (their sizes) and load their weights and scalers.
+
+    Raises:
+        CheckpointError: a missing file, or arrays that do not fit the configured architecture (the
+            message names the parameters).
+    """
+    directory = Path(directory)
+    net = build_network(kind, options)
+    state = original_state_dict(kind, net, directory)
+    own = net.state_dict()
+    params = {k for k in own if not k.endswith((".mean", ".std"))}
+    missing, extra = sorted(params - set(state)), sorted(set(state) - params)
+    wrong = sorted(k for k in set(state) & params if tuple(state[k].shape) != tuple(own[k].shape))
+    if missing or extra or wrong:
+        raise CheckpointError(
+            f"authors' {kind} weights in {directory} do not fit model.{kind}: missing {missing}, "
+            f"unexpected {extra}, wrong shape {wrong}"
+        )
+    net.load_state_dict(state, strict=False)
+    scalers = _scalers(kind, directory)
+    if kind == "advection":
+        _set(net.speed, scalers["vel_scaler"])
+        _set(net.target, scalers["acc_scaler"])
+    elif kind == "pressure":
+        _set(net.speed, scalers["vel_scaler"])
+        _set(net.density, scalers["dns_scaler"])
+        _set(net.target, scalers["prs_scaler"])
+    return net.eval()

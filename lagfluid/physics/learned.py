@@ -1,0 +1,131 @@
+"""Learned stages: FGN's networks behind the stage protocols of :mod:`lagfluid.physics.stages`.
+
+Each stage asks the step's :class:`~lagfluid.physics.stages.StepContext` for its radius graph (so graphs are
+shared with the exact stages and never searched twice at one set of positions), keeps only the particles
+that graph touches (a scene's ~80k static boundary particles mostly never enter), runs its network there
+and returns what the exact stage would return. Only the networks differ between ``model=mps``, ``fgn`` and
+``hybrid``; the update scheme around them is the same code.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from lagfluid.models.fgn import AdvectionNet, CollisionNet, PressureNet
+from lagfluid.neighbors import kernel_adjacency
+from lagfluid.physics import operators as ops
+from lagfluid.physics.stages import StepContext
+from lagfluid.state import ParticleType
+
+
+def _net_dtype(net: torch.nn.Module) -> torch.dtype:
+    return next(net.parameters()).dtype
+
+
+def compact_nodes(edge_index: Tensor, first: int, num_nodes: int) -> tuple[Tensor, Tensor]:
+    """Renumber a graph onto the particles it touches, keeping rows ``0 .. first-1`` (the fluid) in place.
+
+    Args:
+        edge_index: (2, E) over ``num_nodes`` particles, targets ``< first`` or not.
+        first: particles ``0 .. first-1`` are kept (and keep their numbers) even when isolated.
+        num_nodes: N, particles in the scene.
+
+    Returns:
+        ``nodes`` (M,) the scene rows kept (``0 .. first-1``, then every other particle the graph touches, in
+        increasing order) and the (2, E) edge_index renumbered onto ``0 .. M-1``. Edge order is unchanged.
+    """
+    device = edge_index.device
+    touched = torch.unique(edge_index.flatten())
+    nodes = torch.cat([torch.arange(first, device=device), touched[touched >= first]])
+    local = torch.full((num_nodes,), -1, dtype=torch.long, device=device)
+    local[nodes] = torch.arange(nodes.numel(), device=device)
+    return nodes, local.index_select(0, edge_index.flatten()).view(2, -1)
+
+
+class LearnedAdvection:
+    """Advection by :class:`~lagfluid.models.fgn.AdvectionNet` on the fluid and its neighbours."""
+
+    def __init__(self, net: AdvectionNet) -> None:
+        self.net = net.eval()
+
+    def __call__(self, ctx: StepContext, pos: Tensor, vel: Tensor) -> Tensor:
+        """Acceleration (N_fluid, 3) at ``(x^n, v^n)``."""
+        nf, params = ctx.n_fluid, ctx.params
+        g = ctx.graph(pos, self.net.radius, fluid_targets_only=True)
+        with ctx.timer("advection", pos.device):
+            nodes, edge_index = compact_nodes(g.edge_index, nf, pos.shape[0])
+            dtype, m = _net_dtype(self.net), nodes.numel()
+            adj = kernel_adjacency(edge_index, ops.kernel(g.dist, ctx.radius(self.net.radius)).to(dtype), m)
+            gravity = torch.tensor(params.gravity, dtype=dtype, device=pos.device).expand(m, 3)
+            viscosity = torch.full((m,), params.viscosity, dtype=dtype, device=pos.device)
+            acc = self.net.predict(vel.index_select(0, nodes).to(dtype), nodes < nf, gravity, viscosity, adj)
+        return acc[:nf].to(pos.dtype)
+
+
+class LearnedCollision:
+    """Collision correction by :class:`~lagfluid.models.fgn.CollisionNet` (pairs within its radius)."""
+
+    def __init__(self, net: CollisionNet) -> None:
+        self.net = net.eval()
+
+    def __call__(self, ctx: StepContext, pos: Tensor, vel: Tensor) -> Tensor:
+        """Corrected fluid velocities (N_fluid, 3) at ``(x*, v*)``."""
+        nf = ctx.n_fluid
+        # Edges into fluid and nearby walls, as the authors' graph: a source's summed incoming edges are an
+        # input of the edge update, and a wall's come from the fluid pressing on it.
+        g = ctx.graph(pos, self.net.radius)
+        with ctx.timer("collision", pos.device):
+            ctx.info["collision_pairs"] = float(g.edge_index.shape[1])
+            if g.edge_index.shape[1] == 0:  # nothing within the radius: no network call at all
+                return vel[:nf].clone()
+            nodes, edge_index = compact_nodes(g.edge_index, nf, pos.shape[0])
+            dtype = _net_dtype(self.net)
+            dv = self.net.predict(
+                vel.index_select(0, nodes).to(dtype), g.rel.to(dtype), g.dist.to(dtype), edge_index
+            )
+        return vel[:nf] + dv[:nf].to(vel.dtype)
+
+
+class LearnedPressure:
+    """Pressure by :class:`~lagfluid.models.fgn.PressureNet` on the non-free-surface particles.
+
+    The nodes are the PPE's unknowns: fluid and wall particles with ``n >= beta n0`` (number density at
+    ``re_density``); free-surface and dummy particles have ``p = 0``, as in the exact stage.
+    """
+
+    def __init__(self, net: PressureNet) -> None:
+        self.net = net.eval()
+
+    def __call__(self, ctx: StepContext, pos: Tensor, vel: Tensor) -> Tensor:
+        """Pressure (N,) of every particle at ``(x**, v**)``."""
+        s, c = ctx.settings, ctx.constants
+        n_all, ptype, nf = pos.shape[0], ctx.state.ptype, ctx.n_fluid
+        g_n = ctx.graph(pos, s.re_density)
+        g_p = ctx.graph(pos, self.net.radius)
+        with ctx.timer("pressure_net", pos.device):
+            n = ops.number_density(
+                pos, g_n.edge_index, ctx.radius(s.re_density), num_nodes=n_all, geometry=g_n.geometry
+            )
+            surface = n < s.surface_beta * c.n0
+            solved = (ptype != ParticleType.DUMMY) & ~surface
+            src, dst = g_p.edge_index
+            keep = solved.index_select(0, src) & solved.index_select(0, dst)
+            sub = g_p.select(keep)
+            idx = torch.nonzero(solved).flatten()
+            local = torch.full((n_all,), -1, dtype=torch.long, device=pos.device)
+            local[idx] = torch.arange(idx.numel(), device=pos.device)
+            edge_index = local.index_select(0, sub.edge_index.flatten()).view(2, -1)
+            dtype, m = _net_dtype(self.net), idx.numel()
+            adj = kernel_adjacency(edge_index, ops.kernel(sub.dist, ctx.radius(self.net.radius)).to(dtype), m)
+            p = self.net.predict(
+                vel.index_select(0, idx).to(dtype),
+                (n.index_select(0, idx) / c.n0).to(dtype),
+                idx < nf,
+                adj,
+            )
+            pressure = torch.zeros(n_all, dtype=pos.dtype, device=pos.device)
+            pressure[idx] = p.to(pos.dtype)
+        ctx.record(number_density=n, free_surface=surface, ppe_solved=solved)
+        ctx.info.update(pressure_nodes=float(m), surface_particles=float(surface[:nf].sum()))
+        return pressure
