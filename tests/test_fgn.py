@@ -374,3 +374,22 @@ def test_short_rollout_stays_finite_and_writes_the_contract(trained, tmp_path, m
     saved = json.loads((tmp_path / "metrics.json").read_text())
     assert saved["model"] == model and "advection" in saved["stage_median_s"]
     assert json.loads(saved["simulator"]["networks"])["pressure"]["step"] == 60
+
+
+def test_the_neighbour_list_is_only_as_wide_as_the_stages_need(trained):
+    """Model only what the scene needs: FGN searches 2.1 l0 (density, gradient), MPS 3.1 (Laplacian)."""
+    cuts = {}
+    for model, extra in (
+        ("mps", []),
+        ("fgn", [f"model.weights={trained}"]),
+        ("hybrid", [f"model.weights={trained}"]),
+    ):
+        cfg = _compose(f"model={model}", "scene=dam_small", *extra)
+        state = build_initial_state(cfg)
+        cuts[model] = build_simulator(cfg).cutoff(state.params)
+    assert cuts == {"mps": 3.1, "fgn": 2.1, "hybrid": 3.1}
+    inviscid = _compose(
+        "model=hybrid", f"model.weights={trained}", "scene=dam_small", "scene.params.viscosity=0"
+    )
+    state = build_initial_state(inviscid)
+    assert build_simulator(inviscid).cutoff(state.params) == 2.1  # no viscosity: no Laplacian search

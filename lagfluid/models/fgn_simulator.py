@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import json
 import logging
-from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -94,7 +93,6 @@ def build_split_step(cfg: Any) -> LearnedSplitStep:
     dtype = getattr(torch, str(cfg.get("dtype", "float32")))
     device = torch.device(str(cfg.get("device", "cpu")))
     impl: dict[str, Any] = {}
-    extra_radii: list[float] = []
     sources: dict[str, Any] = {}
     for kind in KINDS:
         if stages[kind] == "exact":
@@ -103,11 +101,10 @@ def build_split_step(cfg: Any) -> LearnedSplitStep:
             net, source = load_stage_network(kind, model)
             net = net.to(device=device, dtype=dtype)
             impl[kind] = _LEARNED[kind](net)
-            extra_radii.append(float(net.radius))
             sources[kind] = {**source, "parameters": parameter_count(net)}
         else:
             impl[kind] = None
-    settings = replace(SolverSettings.from_config(cfg.solver), extra_radii=tuple(extra_radii))
+    settings = SolverSettings.from_config(cfg.solver)
     sim = LearnedSplitStep(
         str(model.name), settings, impl["advection"], impl["collision"], impl["pressure"], networks=sources
     )

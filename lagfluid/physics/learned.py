@@ -15,8 +15,8 @@ from torch import Tensor
 from lagfluid.models.fgn import AdvectionNet, CollisionNet, PressureNet
 from lagfluid.neighbors import kernel_adjacency
 from lagfluid.physics import operators as ops
-from lagfluid.physics.stages import StepContext
-from lagfluid.state import ParticleType
+from lagfluid.physics.stages import SolverSettings, StepContext
+from lagfluid.state import ParticleType, SceneParams
 
 
 def _net_dtype(net: torch.nn.Module) -> torch.dtype:
@@ -49,6 +49,10 @@ class LearnedAdvection:
     def __init__(self, net: AdvectionNet) -> None:
         self.net = net.eval()
 
+    def radii(self, settings: SolverSettings, params: SceneParams) -> tuple[float, ...]:
+        """Radii (l0) this stage searches."""
+        return (self.net.radius,)
+
     def __call__(self, ctx: StepContext, pos: Tensor, vel: Tensor) -> Tensor:
         """Acceleration (N_fluid, 3) at ``(x^n, v^n)``."""
         nf, params = ctx.n_fluid, ctx.params
@@ -68,6 +72,10 @@ class LearnedCollision:
 
     def __init__(self, net: CollisionNet) -> None:
         self.net = net.eval()
+
+    def radii(self, settings: SolverSettings, params: SceneParams) -> tuple[float, ...]:
+        """Radii (l0) this stage searches."""
+        return (self.net.radius,)
 
     def __call__(self, ctx: StepContext, pos: Tensor, vel: Tensor) -> Tensor:
         """Corrected fluid velocities (N_fluid, 3) at ``(x*, v*)``."""
@@ -96,6 +104,10 @@ class LearnedPressure:
 
     def __init__(self, net: PressureNet) -> None:
         self.net = net.eval()
+
+    def radii(self, settings: SolverSettings, params: SceneParams) -> tuple[float, ...]:
+        """Radii (l0) this stage searches: its graph and the number density (free surface, input)."""
+        return (self.net.radius, settings.re_density)
 
     def __call__(self, ctx: StepContext, pos: Tensor, vel: Tensor) -> Tensor:
         """Pressure (N,) of every particle at ``(x**, v**)``."""

@@ -12,8 +12,8 @@ from torch import Tensor
 
 from lagfluid.physics import operators as ops
 from lagfluid.physics.ppe import assemble_ppe, ppe_source, solve_ppe
-from lagfluid.physics.stages import StepContext
-from lagfluid.state import ParticleType
+from lagfluid.physics.stages import SolverSettings, StepContext
+from lagfluid.state import ParticleType, SceneParams
 
 
 class ExactAdvection:
@@ -21,6 +21,10 @@ class ExactAdvection:
 
     With ``nu = 0`` no neighbour work is done at all.
     """
+
+    def radii(self, settings: SolverSettings, params: SceneParams) -> tuple[float, ...]:
+        """Radii (l0) this stage searches: the Laplacian's, only when the fluid is viscous."""
+        return (settings.re_laplacian,) if params.viscosity > 0 else ()
 
     def __call__(self, ctx: StepContext, pos: Tensor, vel: Tensor) -> Tensor:
         """Acceleration (N_fluid, 3) at ``(x^n, v^n)``."""
@@ -55,6 +59,10 @@ class CollisionRule:
     summed over all such ``j`` using the velocities before the collision (the authors' rule).
     """
 
+    def radii(self, settings: SolverSettings, params: SceneParams) -> tuple[float, ...]:
+        """Radii (l0) this stage searches."""
+        return (settings.re_collision,)
+
     def __call__(self, ctx: StepContext, pos: Tensor, vel: Tensor) -> Tensor:
         """Corrected fluid velocities (N_fluid, 3) at ``(x*, v*)``."""
         nf = ctx.n_fluid
@@ -84,6 +92,10 @@ class ExactPressure:
     * matrix: the Laplacian model at ``re_laplacian`` (see :mod:`lagfluid.physics.ppe`);
     * solved by preconditioned CG, warm-started from the previous step's pressure.
     """
+
+    def radii(self, settings: SolverSettings, params: SceneParams) -> tuple[float, ...]:
+        """Radii (l0) this stage searches."""
+        return (settings.re_laplacian, settings.re_density, settings.re_gradient)
 
     def __call__(self, ctx: StepContext, pos: Tensor, vel: Tensor) -> Tensor:
         """Pressure (N,) of every particle at ``(x**, v**)``."""

@@ -345,11 +345,26 @@ class SplitStepSimulator:
         else:
             self.constants = initial_constants(state, self.settings)
         self.neighbors = VerletNeighborList(
-            self.settings.max_radius * state.params.l0,
+            self.cutoff(state.params) * state.params.l0,
             self.settings.neighbor_skin * state.params.l0,
             self.settings.neighbor_backend,
             self.settings.wall_hops,
         )
+
+    def cutoff(self, params: SceneParams) -> float:
+        """Largest radius (in l0) the configured stages use for this scene: the neighbour list's cutoff.
+
+        A stage reports its radii with ``radii(settings, params)``; a stage without that method is assumed
+        to need every radius of the settings. FGN needs 2.1 l0 where MPS needs 3.1 l0 (the Laplacian): a
+        list at 2.1 + skin holds ~2.6x fewer candidate pairs to filter every step.
+        """
+        needed: list[float] = [self.settings.re_gradient] if self.pressure is not None else []
+        for stage in (self.advection, self.collision, self.pressure):
+            if stage is None:
+                continue
+            radii = getattr(stage, "radii", None)
+            needed += list(radii(self.settings, params)) if radii else [self.settings.max_radius]
+        return max(needed, default=self.settings.re_collision)
 
     @property
     def last_timings(self) -> dict[str, float]:
