@@ -393,3 +393,16 @@ def test_the_neighbour_list_is_only_as_wide_as_the_stages_need(trained):
     )
     state = build_initial_state(inviscid)
     assert build_simulator(inviscid).cutoff(state.params) == 2.1  # no viscosity: no Laplacian search
+
+
+def test_exported_weights_drop_the_optimizer_and_still_load(trained, tmp_path):
+    from lagfluid.models.checkpoint import export_weights
+
+    for path in export_weights(trained, tmp_path):
+        ckpt = read_checkpoint(path)
+        assert "optimizer" not in ckpt and "rng" not in ckpt
+        assert path.stat().st_size < (trained / path.name).stat().st_size
+        net, _ = load_network(path, ckpt["kind"])
+        original, _ = load_network(trained / path.name, ckpt["kind"])
+        for (k, a), (_, b) in zip(net.state_dict().items(), original.state_dict().items(), strict=True):
+            assert torch.equal(a, b), k

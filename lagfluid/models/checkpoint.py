@@ -107,3 +107,26 @@ def load_network(path: str | os.PathLike, kind: str | None = None) -> tuple[nn.M
     except RuntimeError as err:
         raise CheckpointError(f"{path}: weights do not fit its own options: {err}") from err
     return net.eval(), ckpt
+
+
+def export_weights(run_dir: str | os.PathLike, dest_dir: str | os.PathLike) -> list[Path]:
+    """Copy the three networks of a training run without optimizer and RNG state (shipping size).
+
+    ``python -m lagfluid.models.checkpoint RUN_DIR DEST_DIR`` does the same from the shell.
+    """
+    written = []
+    for kind in KINDS:
+        ckpt = read_checkpoint(Path(run_dir) / f"{kind}.pt", kind)
+        keep = {k: ckpt[k] for k in ("kind", "options", "state_dict", "step", "meta")}
+        save_checkpoint(Path(dest_dir) / f"{kind}.pt", keep)
+        written.append(Path(dest_dir) / f"{kind}.pt")
+    return written
+
+
+if __name__ == "__main__":
+    import sys
+
+    if len(sys.argv) != 3:
+        sys.exit("usage: python -m lagfluid.models.checkpoint RUN_DIR DEST_DIR")
+    for path in export_weights(sys.argv[1], sys.argv[2]):
+        sys.stdout.write(f"{path} ({path.stat().st_size / 1e3:.0f} kB)\n")
