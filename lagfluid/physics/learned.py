@@ -36,8 +36,11 @@ def compact_nodes(edge_index: Tensor, first: int, num_nodes: int) -> tuple[Tenso
         increasing order) and the (2, E) edge_index renumbered onto ``0 .. M-1``. Edge order is unchanged.
     """
     device = edge_index.device
-    touched = torch.unique(edge_index.flatten())
-    nodes = torch.cat([torch.arange(first, device=device), touched[touched >= first]])
+    # A mask rather than torch.unique: no sort of the 2E indices (21 ms -> a few ms per call at 4k fluid).
+    keep = torch.zeros(num_nodes, dtype=torch.bool, device=device)
+    keep[edge_index.flatten()] = True
+    keep[:first] = True
+    nodes = torch.nonzero(keep).flatten()  # 0 .. first-1, then the others in increasing order
     local = torch.full((num_nodes,), -1, dtype=torch.long, device=device)
     local[nodes] = torch.arange(nodes.numel(), device=device)
     return nodes, local.index_select(0, edge_index.flatten()).view(2, -1)
