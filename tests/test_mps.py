@@ -212,3 +212,62 @@ def test_solver_yaml_defaults_are_the_dataclass_defaults():
     assert SolverSettings.from_config(SOLVER) == SolverSettings()
     assert SolverSettings.from_config({"neighbors": {"wall_hops": None}}).wall_hops is None
     assert SolverSettings.from_config({"ppe": {"tol": "1e-8"}}).ppe_tol == 1e-8  # YAML's string 1e-8
+
+
+def _old_filter(nl, pos, ptype, radius):
+    """The list's filtering as it was before the wall rows were cached: every candidate recomputed."""
+    from lagfluid.neighbors import edge_vectors
+
+    rel, dist = edge_vectors(pos, nl.candidates)
+    n_fluid = int((ptype == 1).sum())  # ParticleType.FLUID
+    src, dst = nl.candidates
+    within = dist < radius
+    hop = (dist < nl.cutoff) & (dst >= n_fluid)
+    active = torch.zeros(pos.shape[0], dtype=torch.bool)
+    active[dst[hop & (src < n_fluid)]] = True
+    for _ in range(nl.wall_hops - 1):
+        active[dst[hop & active.index_select(0, src)]] = True
+    within &= (dst < n_fluid) | active.index_select(0, dst)
+    return nl.candidates[:, within], rel[within], dist[within]
+
+
+def test_cached_wall_rows_equal_recomputing_every_candidate():
+    state = build_scene("dam", fluid_size=[6, 6, 8], tank_size=[15, 8])
+    nl = VerletNeighborList(3.1 * 0.05, 0.3 * 0.05)
+    gen = torch.Generator().manual_seed(2)
+    pos = state.pos.clone()
+    for _ in range(6):  # small moves: the cache is reused between rebuilds
+        pos[: state.n_fluid] += 0.002 * torch.randn(state.n_fluid, 3, generator=gen, dtype=pos.dtype)
+        for radius in (3.1 * 0.05, 2.1 * 0.05):
+            g = nl.graph(pos, state.ptype, radius)
+            ei, rel, dist = _old_filter(nl, pos, state.ptype, radius)
+            assert torch.equal(g.edge_index, ei) and torch.equal(g.rel, rel) and torch.equal(g.dist, dist)
+    assert nl.builds < 6
+
+
+def test_moved_boundary_invalidates_the_cached_wall_rows():
+    state = build_scene("dam", fluid_size=[6, 6, 8], tank_size=[15, 8])
+    nl = VerletNeighborList(3.1 * 0.05, 0.3 * 0.05)
+    nl.graph(state.pos, state.ptype, 3.1 * 0.05)
+    pos = state.pos.clone()
+    pos[state.n_fluid :, 2] += 0.01  # the whole tank moves (the fluid does not)
+    g = nl.graph(pos, state.ptype, 3.1 * 0.05)
+    assert nl.builds == 2
+    ei, _, dist = _old_filter(nl, pos, state.ptype, 3.1 * 0.05)
+    assert torch.equal(g.edge_index, ei) and torch.equal(g.dist, dist)
+
+
+def test_fluid_target_graph_sliced_from_the_cached_full_graph():
+    from lagfluid.physics.stages import StageTimer, StepContext
+
+    state = build_scene("dam", fluid_size=[6, 6, 8], tank_size=[15, 8])
+    sim = mps()
+    sim.reset(state)
+    ctx = StepContext(state, sim.settings, sim.constants, sim.neighbors, StageTimer())
+    pos = state.pos.clone()
+    pos[: state.n_fluid] += 0.003 * torch.randn(state.n_fluid, 3, generator=torch.Generator().manual_seed(5))
+    full = ctx.graph(pos, 2.1)
+    fluid = ctx.graph(pos, 2.1, fluid_targets_only=True)
+    ref = radius_graph(pos, 2.1 * 0.05, receivers=state.fluid_mask, backend="brute")
+    assert torch.equal(fluid.edge_index, ref)
+    assert torch.equal(fluid.dist, full.dist[: ref.shape[1]])

@@ -479,3 +479,42 @@ def test_scatter_gather_roundtrip(tank):
     full = system.scatter(restricted)
     assert torch.equal(full[system.index], values[system.index])
     assert bool((full[~torch.from_numpy(tank.solve)] == 0).all())
+
+
+def test_trusted_assembly_and_scipy_merge_equal_the_checked_torch_path(tank, monkeypatch):
+    # The solver assembles with check=False on its own (sorted, symmetric) graphs and merges the diagonal
+    # with SciPy on the CPU: both must give the very same CSR arrays as the checked, all-torch path.
+    checked = assemble(tank, dtype=torch.float32)
+    trusted = assemble(tank, dtype=torch.float32, check=False)
+
+    def torch_merge(crow, cols, off, diag, k, idt):
+        rows = torch.repeat_interleave(torch.arange(k), torch.diff(crow))
+        crow2, col, val, _ = ppe._csr_with_diagonal(rows, cols, off, diag, k)
+        return torch.sparse_csr_tensor(crow2.to(idt), col.to(idt), val, (k, k), check_invariants=False)
+
+    monkeypatch.setattr(ppe, "_csr_plus_diagonal_scipy", torch_merge)
+    all_torch = assemble(tank, dtype=torch.float32)
+    for other in (trusted, all_torch):
+        assert torch.equal(other.matrix.crow_indices(), checked.matrix.crow_indices())
+        assert torch.equal(other.matrix.col_indices(), checked.matrix.col_indices())
+        assert torch.equal(other.matrix.values(), checked.matrix.values())
+        assert torch.equal(other.isolated, checked.isolated) and torch.equal(other.index, checked.index)
+
+
+def test_pcg_jacobi_matches_scipy_cg(big_tank):
+    # Our BLAS-free loop is SciPy's Jacobi CG written out: same iterates up to round-off.
+    import scipy.sparse.linalg as spla
+
+    a = assemble(big_tank).to_scipy()
+    b = np.random.default_rng(3).normal(size=a.shape[0])
+    x0 = np.random.default_rng(4).normal(size=a.shape[0])
+    inv_diag = 1.0 / a.diagonal()
+    precond = spla.LinearOperator(a.shape, matvec=lambda r: inv_diag * r.ravel(), dtype=np.float64)
+    iters: list[int] = []
+    for start in (None, x0):
+        iters.clear()
+        ref, _ = spla.cg(a, b, x0=start, rtol=0.0, atol=1e-9, maxiter=500, M=precond, callback=iters.append)
+        x, n = ppe._pcg_jacobi(a, b, start, 1e-9, 500)
+        assert abs(n - len(iters)) <= 1
+        assert np.linalg.norm(b - a @ x) <= 1e-9
+        np.testing.assert_allclose(x, ref, rtol=0, atol=1e-8 * np.abs(ref).max())

@@ -55,6 +55,10 @@ def kernel(dist: Tensor, re: float) -> Tensor:
         (no NaN gradients at the excluded pairs).
     """
     valid = (dist > _R_MIN) & (dist < re)
+    if not (dist.requires_grad and torch.is_grad_enabled()):
+        # The same numbers in fewer passes (the solver's hot path): ``re / t`` on a tensor is evaluated as
+        # ``t.reciprocal() * re``, and masked entries are set to 0 afterwards instead of substituted before.
+        return dist.reciprocal().mul_(re).sub_(1.0).masked_fill_(~valid, 0.0)
     # Substitute a harmless distance where the weight is masked out so that neither the value nor its
     # gradient sees re / 0.
     safe = torch.where(valid, dist, torch.full_like(dist, re))

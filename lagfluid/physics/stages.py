@@ -267,8 +267,13 @@ class StepContext:
                 if pos is src and pos._version == version and usable:
                     cache_key = (radius, fluid_targets_only)
                     if cache_key not in self._within:  # stages at one set of positions share sub-graphs
-                        sub = full.into_first(nf) if fluid_targets_only and not full_fluid_only else full
-                        self._within[cache_key] = sub.within(radius)
+                        every = self._within.get((radius, False))
+                        if fluid_targets_only and every is not None:
+                            # Sorted by target: the fluid-target graph is a prefix (a slice, no pass).
+                            self._within[cache_key] = every.into_first(nf)
+                        else:
+                            sub = full.into_first(nf) if fluid_targets_only and not full_fluid_only else full
+                            self._within[cache_key] = sub.within(radius)
                     return self._within[cache_key]
                 moved = float((pos[:nf] - old_pos[:nf]).norm(dim=1).max()) if nf else 0.0
                 # Only fluid-target graphs are derived: the wall targets of an all-target graph depend on
