@@ -27,21 +27,14 @@ from pathlib import Path
 import numpy as np
 import torch
 from hydra import compose, initialize_config_dir
-from scipy.spatial import cKDTree
 
 from benchmarks.provenance import markdown, provenance
 from lagfluid.data.store import read_trajectory
+from lagfluid.metrics import chamfer_distance
 from lagfluid.rollout import simulate
 from lagfluid.run import CONF_DIR
 
 RESULTS = Path(__file__).resolve().parent / "results"
-
-
-def chamfer(a: np.ndarray, b: np.ndarray) -> float:
-    """Asymmetric Chamfer distance from point set ``a`` (N, 3) to ``b`` (M, 3): mean nearest distance."""
-    if len(a) == 0 or len(b) == 0:
-        return float("nan")
-    return float(cKDTree(b).query(a, k=1)[0].mean())
 
 
 def run_model(model: str, args: argparse.Namespace) -> tuple[dict, Path]:
@@ -97,7 +90,7 @@ def main(argv: list[str] | None = None) -> None:
         traj = read_trajectory(path)
         l0 = float(traj["attrs"]["l0"])
         dists = [
-            chamfer(p, ref_frames[round(t / dt)])
+            chamfer_distance(p, ref_frames[round(t / dt)])
             for t, p in zip(traj["time"], traj["position"], strict=True)
             if round(t / dt) in ref_frames
         ]

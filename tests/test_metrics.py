@@ -1,0 +1,179 @@
+"""Every metric against a case computed by hand (lagfluid.metrics)."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+
+from lagfluid.metrics import (
+    MetricInputError,
+    chamfer_distance,
+    exact_context,
+    exact_ppe,
+    field_metrics,
+    kinetic_energy,
+    mps_constants,
+    mse_horizons,
+    normalized_mae,
+    position_mse,
+    ppe_relative_residual,
+    relative_error,
+    summarize,
+)
+from lagfluid.physics.stages import SolverSettings
+from lagfluid.rollout import build_initial_state, build_simulator
+from lagfluid.run import CONF_DIR
+from lagfluid.state import ParticleState
+
+
+# ------------------------------------------------------------------------------------------- field metrics
+def test_density_error_and_divergence_of_two_particles_by_hand():
+    # l0 = 1, re = 2.1: two particles 1 apart have w = 2.1/1 - 1 = 1.1, so n = 1.1 each; with n0 = 1 both are
+    # interior (1.1 >= 0.97) and |n/n0 - 1| = 0.1. v = (0,0,0) and (1,0,0):
+    # div_i = 3/n0 * (v_j - v_i).(x_j - x_i)/r^2 * w = 3 * 1 * 1.1 = 3.3 for both. A third fluid particle far
+    # away has n = 0 (free surface) and takes no part.
+    pos = torch.tensor([[0.0, 0, 0], [1, 0, 0], [10, 0, 0]], dtype=torch.float64)
+    vel = torch.tensor([[0.0, 0, 0], [1, 0, 0], [5, 5, 5]], dtype=torch.float64)
+    ptype = torch.ones(3, dtype=torch.int64)
+    m = field_metrics(pos, vel, ptype, n0=1.0, re_density=2.1, re_gradient=2.1)
+    assert m.interior_particles == 2
+    assert m.density_error == pytest.approx(0.1, rel=1e-12)
+    assert m.velocity_divergence == pytest.approx(3.3, rel=1e-12)
+
+
+def test_field_metrics_without_interior_particles_are_zero():
+    pos = torch.tensor([[0.0, 0, 0], [10, 0, 0]], dtype=torch.float64)
+    m = field_metrics(pos, torch.zeros_like(pos), torch.ones(2, dtype=torch.int64), 1.0, 2.1, 2.1)
+    assert (m.density_error, m.velocity_divergence, m.interior_particles) == (0.0, 0.0, 0)
+
+
+def test_summarize_mean_and_max_over_frames():
+    assert summarize([1.0, 2.0, 6.0]) == {"mean": 3.0, "max": 6.0}
+    assert math.isnan(summarize([1.0, float("nan")])["mean"])
+    assert summarize([float("nan"), 1.0, 3.0, math.inf], finite_only=True) == {"mean": 2.0, "max": 3.0}
+    assert all(math.isnan(v) for v in summarize([]).values())
+
+
+# ------------------------------------------------------------------------------------------- Chamfer
+def test_chamfer_distance_by_hand_and_asymmetric():
+    pred = np.array([[0.0, 0, 0], [1, 0, 0]])
+    ref = np.array([[0.0, 0, 0.5], [3, 0, 0]])
+    # pred -> ref: 0.5 and |(1, 0, -0.5)| = sqrt(1.25); ref -> pred: 0.5 and 2
+    assert chamfer_distance(pred, ref) == pytest.approx((0.5 + math.sqrt(1.25)) / 2, rel=1e-15)
+    assert chamfer_distance(ref, pred) == pytest.approx(1.25, rel=1e-15)
+    assert chamfer_distance(torch.tensor(pred), torch.tensor(pred)) == 0.0
+
+
+def test_chamfer_distance_matches_brute_force():
+    rng = np.random.default_rng(0)
+    a, b = rng.random((50, 3)), rng.random((70, 3))
+    brute = np.linalg.norm(a[:, None] - b[None], axis=2).min(axis=1).mean()
+    assert chamfer_distance(a, b) == pytest.approx(brute, rel=1e-12)
+
+
+@pytest.mark.parametrize(
+    ("pred", "ref", "match"),
+    [
+        (np.zeros((0, 3)), np.zeros((2, 3)), "non-empty"),
+        (np.zeros((2, 3)), np.zeros((2, 2)), "dimension"),
+        (np.full((2, 3), np.nan), np.zeros((2, 3)), "NaN"),
+    ],
+)
+def test_chamfer_distance_rejects_bad_input(pred, ref, match):
+    with pytest.raises(MetricInputError, match=match):
+        chamfer_distance(pred, ref)
+
+
+# ------------------------------------------------------------------------------------------- position MSE
+def test_position_mse_by_hand():
+    pred = np.array([[0.0, 0, 0], [1, 1, 1]])
+    ref = np.array([[0.0, 0, 1], [1, 1, 1]])
+    # one coordinate off by 1 among N D = 6
+    assert position_mse(pred, ref) == pytest.approx(1 / 6, rel=1e-15)
+    assert position_mse(ref, ref) == 0.0
+    with pytest.raises(MetricInputError, match="particle by particle"):
+        position_mse(pred, ref[:1])
+
+
+def test_mse_horizons_at_and_mean_to_step():
+    out = mse_horizons([0, 1, 2, 5, 10], [0.0, 1.0, 2.0, 3.0, 4.0], [1, 5, 50])
+    assert out["at_step"] == {"1": 1.0, "5": 3.0}  # 50 is past the run
+    assert out["mean_to_step"] == {"1": 1.0, "5": 2.0}  # mean over steps 1, 2, 5 (not frame 0)
+    with pytest.raises(MetricInputError, match="horizons"):
+        mse_horizons([0, 1], [0.0, 1.0], [0])
+
+
+# ------------------------------------------------------------------------------------------- kinetic energy
+def test_kinetic_energy_and_its_relative_error_by_hand():
+    vel = np.array([[1.0, 0, 0], [0, 2, 0]])
+    assert kinetic_energy(vel, particle_mass=2.0) == pytest.approx(0.5 * 2 * (1 + 4))
+    assert relative_error(6.0, 5.0) == pytest.approx(0.2)
+    assert relative_error(4.0, 5.0) == pytest.approx(0.2)
+    assert relative_error(0.0, 0.0) == 0.0
+    assert relative_error(1.0, 0.0) == math.inf
+    with pytest.raises(MetricInputError, match="particle_mass"):
+        kinetic_energy(vel, 0.0)
+
+
+# ------------------------------------------------------------------------------------------- normalised MAE
+def test_normalized_mae_scalars_eq30_by_hand():
+    # |1.1 - 1|/1 = 0.1 and |2 - 4|/4 = 0.5; the zero target is left out
+    assert normalized_mae([1.1, 2.0, 5.0], [1.0, 4.0, 0.0]) == pytest.approx(0.3)
+
+
+def test_normalized_mae_vectors_eq32_by_hand():
+    pred = np.array([[3.0, 4, 0], [0, 0, 1], [1, 1, 1]])
+    target = np.array([[3.0, 0, 0], [0, 0, 2], [0, 0, 0]])
+    # ||(0,4,0)|| / 3 and ||(0,0,-1)|| / 2; the zero vector is left out
+    assert normalized_mae(pred, target) == pytest.approx((4 / 3 + 1 / 2) / 2)
+    assert normalized_mae(target, target) == 0.0
+    assert math.isnan(normalized_mae([1.0], [0.0]))
+    with pytest.raises(MetricInputError, match="same non-empty"):
+        normalized_mae(pred, target[:, :2])
+
+
+# ------------------------------------------------------------------------------------------- PPE residual
+@pytest.fixture(scope="module")
+def mps_pressure_step():
+    """A dam_small MPS step in float64 with its intermediates: (simulator, input state, fields, settings)."""
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        cfg = compose(config_name="config", overrides=["scene=dam_small", "dtype=float64", "device=cpu"])
+    state = build_initial_state(cfg)
+    sim = build_simulator(cfg)
+    sim.reset(state)
+    for _ in range(3):
+        state = sim.step(state)
+    sim.record_intermediates = True
+    sim.step(state)
+    return sim, state, sim.last_fields, SolverSettings.from_config(cfg.solver)
+
+
+def _state_at_pressure_stage(state: ParticleState, fields: dict) -> ParticleState:
+    pos, vel, nf = state.pos.clone(), state.vel.clone(), state.n_fluid
+    pos[:nf], vel[:nf] = fields["pos_collided"], fields["vel_collided"]
+    return ParticleState(pos=pos, vel=vel, ptype=state.ptype, params=state.params, check=False)
+
+
+def test_ppe_residual_of_the_solver_pressure_is_its_tolerance(mps_pressure_step):
+    sim, state, fields, settings = mps_pressure_step
+    ctx = exact_context(_state_at_pressure_stage(state, fields), settings, mps_constants(state, settings))
+    system, _ = exact_ppe(ctx)
+    # the same system as the solver's: the same unknowns, and its own reported residual (relative, float64)
+    assert torch.equal(system.scatter(torch.ones(system.num_unknowns)).bool(), fields["ppe_solved"])
+    residual = ppe_relative_residual(ctx, fields["pressure_unclamped"])
+    assert residual == pytest.approx(sim.last_info["ppe_residual"], rel=1e-3, abs=1e-12)
+    assert residual < 1e-6
+
+
+def test_ppe_residual_of_scaled_and_zero_pressure_by_hand(mps_pressure_step):
+    # exact solution p*: ||A (1 + a) p* - b|| / ||b|| = |a| ||b|| / ||b||; p = 0 gives ||b|| / ||b|| = 1
+    _, state, fields, settings = mps_pressure_step
+    ctx = exact_context(_state_at_pressure_stage(state, fields), settings, mps_constants(state, settings))
+    p = fields["pressure_unclamped"]
+    assert ppe_relative_residual(ctx, 1.25 * p) == pytest.approx(0.25, abs=1e-6)
+    assert ppe_relative_residual(ctx, 0.5 * p) == pytest.approx(0.5, abs=1e-6)
+    assert ppe_relative_residual(ctx, torch.zeros_like(p)) == pytest.approx(1.0, rel=1e-12)
+    with pytest.raises(MetricInputError, match="one value per particle"):
+        ppe_relative_residual(ctx, p[:10])
