@@ -21,7 +21,7 @@ from lagfluid.errors import LagfluidError
 log = logging.getLogger("lagfluid")
 
 CONF_DIR = Path(__file__).resolve().parent.parent / "conf"
-TASKS = ("simulate", "generate", "train")
+TASKS = ("simulate", "generate", "train", "evaluate")
 
 
 def _group_names(group: str) -> list[str]:
@@ -80,6 +80,10 @@ def dispatch(cfg: DictConfig) -> None:
         from lagfluid.train import train
 
         train(cfg)
+    elif cfg.task == "evaluate":
+        from lagfluid.evaluate import evaluate
+
+        evaluate(cfg)
     else:  # guarded by check_command_line and the config
         raise LagfluidError(f"unknown task '{cfg.task}'; available: {', '.join(TASKS)}")
 
