@@ -5,7 +5,8 @@
 
 * ``rollout.h5``          the model's trajectory (the rollout format of :mod:`lagfluid.data.store`);
 * ``metrics.json``        per-frame arrays of every metric, their summaries (mean and max over the run,
-  position MSE at fixed horizons) and provenance (config, reference file and whether it was reused);
+  position MSE at fixed horizons), the model's step timings (``timing``: median per step and stage, total)
+  and provenance (config, reference file and whether it was reused);
 * ``error_vs_time.png``   paper Fig. 4: Chamfer distance, density error, divergence, position MSE, kinetic
   energy and the one-step errors against time, model and MPS;
 * ``pressure_slice.png``  paper Fig. 6: a vertical slice through the tank at one frame, model and MPS side
@@ -19,6 +20,15 @@ being that of the resolved key (:func:`reference_key`), which is also stored in 
 made by MPS, holds every frame and carries the same key; anything else (another dt, an interrupted run, a
 file of another version) is recomputed, never silently used. A lock file serialises concurrent evaluations
 of one reference (Hydra multiruns).
+
+**Another reference.** ``evaluate.reference`` holds settings merged over the run's for the reference only
+(null by default: the same settings), so a model run at other settings can be compared with MPS at the
+defaults, e.g. ``dt=0.004 steps=250`` against ``evaluate.reference={dt:null,steps:500}``, or a coarser
+``scene.params.l0`` against the default one. Frames are matched by *time*, not step number. Runs at
+different particle spacings are compared in the frame of the boundary surface: the built scenes put the
+inner wall layer on x, y, z = 0, so that surface lies half a spacing inside, at ``l0 / 2`` (each rollout
+is shifted by ``-l0 / 2`` before the Chamfer distance); position MSE needs corresponding particles and is
+NaN when the particle counts differ.
 
 **Per frame** (frames ``0, k, 2k, ..., N`` with ``k = write_every``), :mod:`lagfluid.metrics`:
 
@@ -45,7 +55,7 @@ import math
 import os
 import time
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -53,6 +63,7 @@ import h5py
 import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
+from omegaconf.errors import OmegaConfBaseException
 
 import lagfluid
 from lagfluid.data.store import TrajectoryFileError, TrajectoryWriter, open_lagfluid_file
@@ -78,6 +89,7 @@ from lagfluid.physics.mps import ExactAdvection
 from lagfluid.physics.stages import MPSConstants, SolverSettings, lattice_constants
 from lagfluid.rollout import (
     Guard,
+    _timing_summary,
     build_initial_state,
     build_simulator,
     git_commit,
@@ -111,6 +123,8 @@ class EvaluateOptions:
         slice_position: coordinate (m) of the plane along ``slice_axis``; None = the fluid layer nearest
             the initial fluid's centre.
         slice_width: thickness of the slab shown, in l0.
+        reference: settings merged over the run's config for the MPS reference only (plain nested dict;
+            empty = the run's own settings).
     """
 
     reference_dir: Path
@@ -122,6 +136,7 @@ class EvaluateOptions:
     slice_axis: str = "y"
     slice_position: float | None = None
     slice_width: float = 1.0
+    reference: dict[str, Any] = field(default_factory=dict)
 
     @classmethod
     def from_config(cls, node: Any) -> EvaluateOptions:
@@ -140,6 +155,11 @@ class EvaluateOptions:
         if not (math.isfinite(width) and width > 0):
             raise ConfigError(f"evaluate.slice.width must be > 0 (l0), got {width!r}")
         position = sl.get("position")
+        reference = node.get("reference") or {}
+        if OmegaConf.is_config(reference):
+            reference = OmegaConf.to_container(reference, resolve=True)
+        if not isinstance(reference, dict):
+            raise ConfigError(f"evaluate.reference must be a mapping of settings, got {reference!r}")
         return cls(
             reference_dir=Path(str(node.get("reference_dir") or "runs/reference")),
             reuse_reference=bool(node.get("reuse_reference", True)),
@@ -150,6 +170,7 @@ class EvaluateOptions:
             slice_axis=axis,
             slice_position=None if position is None else float(position),
             slice_width=width,
+            reference=dict(reference),
         )
 
 
@@ -236,6 +257,22 @@ def _locked(path: Path) -> Iterator[None]:
             fcntl.flock(handle, fcntl.LOCK_UN)
 
 
+def reference_settings(cfg: DictConfig, overrides: dict[str, Any]) -> DictConfig:
+    """The run's config with ``overrides`` (``evaluate.reference``) merged over it: what the reference uses.
+
+    Raises:
+        ConfigError: an override names a key the config does not have (struct mode).
+    """
+    if not overrides:
+        return cfg
+    merged = OmegaConf.create(OmegaConf.to_container(cfg, resolve=True))
+    OmegaConf.set_struct(merged, True)
+    try:
+        return OmegaConf.merge(merged, overrides)
+    except OmegaConfBaseException as err:  # an unknown key or a bad type: name the bad value
+        raise ConfigError(f"evaluate.reference={overrides!r} does not fit the config: {err}") from err
+
+
 def reference_config(cfg: DictConfig, out_dir: Path) -> DictConfig:
     """``cfg`` with ``model=mps`` and ``task=simulate`` writing to ``out_dir`` (struct mode kept)."""
     plain = OmegaConf.to_container(cfg, resolve=True)
@@ -256,6 +293,7 @@ def reference_rollout(cfg: DictConfig, options: EvaluateOptions) -> tuple[Path, 
     Raises:
         RolloutError: the MPS run stopped (guard); the message says how.
     """
+    cfg = reference_settings(cfg, options.reference)
     key = reference_key(cfg)
     folder = options.reference_dir / f"{cfg.scene.name}-{key_hash(key)}"
     folder.mkdir(parents=True, exist_ok=True)
@@ -286,11 +324,13 @@ class _StepProbe:
     only hands out the states after each step, so the probe keeps the one before.
     """
 
-    def __init__(self, inner: Simulator) -> None:
+    def __init__(self, inner: Simulator, record: bool = True) -> None:
         self.inner = inner
         self.name = inner.name
         self.last_input: ParticleState | None = None
-        if hasattr(inner, "record_intermediates"):
+        # Recording copies the intermediates every step: only when the one-step errors need them, so
+        # that timed runs (evaluate.one_step=false) measure the simulator alone.
+        if record and hasattr(inner, "record_intermediates"):
             inner.record_intermediates = True
 
     @property
@@ -352,8 +392,9 @@ def run_model(
     """Roll the model out into ``out`` (rollout.h5) and collect its one-step errors per stored frame.
 
     Returns:
-        ``complete``, ``stop_reason``, ``steps`` done and per-frame ``step``, ``advection_nmae`` and
-        ``ppe_relative_residual`` lists.
+        ``complete``, ``stop_reason``, ``steps`` done, ``timing`` (median time per step and per stage as
+        ``task=simulate`` reports them, and ``steps_total_s``, the wall time of all steps done) and
+        per-frame ``step``, ``advection_nmae`` and ``ppe_relative_residual`` lists.
     """
     settings = SolverSettings.from_config(cfg.solver)
     guard = Guard(float(cfg.solver.guard.max_courant), int(cfg.solver.guard.check_every))
@@ -365,7 +406,7 @@ def run_model(
         state.ptype[nf:].cpu().numpy(),
         run_attributes(state, cfg, simulator.name, str(cfg.scene.name), int(cfg.write_every)),
     )
-    probe = _StepProbe(simulator)
+    probe = _StepProbe(simulator, record=one_step)
     constants = mps_constants(state, settings)
     neighbors = mps_neighbor_list(state, settings)  # one list for every frame: it rebuilds only as needed
     result: dict[str, Any] = {"step": [], "advection_nmae": [], "ppe_relative_residual": []}
@@ -398,7 +439,16 @@ def run_model(
     for k, v in simulator.attributes().items():
         writer.group.attrs[k] = v
     writer.close(complete=complete, stop_reason=stop_reason)
-    return {**result, "complete": complete, "stop_reason": stop_reason, "steps": len(record["step_seconds"])}
+    record.setdefault("stage_seconds", {})
+    record.setdefault("info", {})
+    timing = {**_timing_summary(record), "steps_total_s": float(sum(record["step_seconds"]))}
+    return {
+        **result,
+        "complete": complete,
+        "stop_reason": stop_reason,
+        "steps": len(record["step_seconds"]),
+        "timing": timing,
+    }
 
 
 # ------------------------------------------------------------------------------------------- comparison
@@ -408,6 +458,7 @@ class _Trajectory:
 
     file: h5py.File
     steps: list[int]
+    times: list[float]
     boundary_position: np.ndarray
     boundary_type: np.ndarray
     attrs: dict[str, Any]
@@ -417,13 +468,25 @@ class _Trajectory:
         f = open_lagfluid_file(path)
         g = f["00000"]
         dt = float(g.attrs["dt"])
+        times = [float(t) for t in g["time"][()]]
         return cls(
             f,
-            [round(float(t) / dt) for t in g["time"][()]],
+            [round(t / dt) for t in times],
+            times,
             g["boundary_position"][()],
             g["boundary_type"][()],
             dict(g.attrs),
         )
+
+    @property
+    def l0(self) -> float:
+        """Particle spacing (m)."""
+        return float(self.attrs["l0"])
+
+    @property
+    def surface_offset(self) -> float:
+        """Where the boundary surface lies in the built scenes' coordinates: half a spacing inside (m)."""
+        return 0.5 * self.l0
 
     def frame(self, index: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         g = self.file["00000"]
@@ -455,8 +518,29 @@ def _field(
     )
 
 
+def _common_frames(model: _Trajectory, ref: _Trajectory) -> list[tuple[int, int]]:
+    """``(model frame, reference frame)`` index pairs stored at the same time (the model's dt may differ).
+
+    A model frame matches when its time lies on the reference's step grid (to 1e-6 of a reference step)
+    and the reference stored that step.
+    """
+    dt_ref = float(ref.attrs["dt"])
+    ref_index = {s: i for i, s in enumerate(ref.steps)}
+    pairs = []
+    for i, t in enumerate(model.times):
+        s = round(t / dt_ref)
+        if abs(t - s * dt_ref) <= 1e-6 * dt_ref and s in ref_index:
+            pairs.append((i, ref_index[s]))
+    return pairs
+
+
 def compare(model_path: Path, reference_path: Path, settings: SolverSettings) -> dict[str, Any]:
-    """Per-frame metrics of the model's rollout against the reference's, at the steps both stored.
+    """Per-frame metrics of the model's rollout against the reference's, at the times both stored.
+
+    The model may run at another dt or particle spacing than the reference (``evaluate.reference``): frames
+    are matched by time, each rollout's density error uses its own spacing's ``n0``, its kinetic energy its
+    own particle mass, and the Chamfer distance is taken in the boundary surface's frame (see the module
+    doc); the position MSE is NaN when the particle counts differ (no correspondence).
 
     Returns:
         ``{"step", "time_s", "chamfer_mm", "position_mse_m2", "kinetic_energy_rel_error"}`` lists and
@@ -464,31 +548,29 @@ def compare(model_path: Path, reference_path: Path, settings: SolverSettings) ->
     """
     model, ref = _Trajectory.open(model_path), _Trajectory.open(reference_path)
     try:
-        l0, dim = float(ref.attrs["l0"]), int(ref.attrs.get("dim", 3))
-        n0 = lattice_constants(l0, settings, dim).n0
-        mass = float(ref.attrs["density"]) * l0**dim
-        dt = float(ref.attrs["dt"])
-        ref_index = {s: i for i, s in enumerate(ref.steps)}
+        dim = int(ref.attrs.get("dim", 3))
+        n0 = {id(t): lattice_constants(t.l0, settings, dim).n0 for t in (model, ref)}
+        mass = {id(t): float(t.attrs["density"]) * t.l0**dim for t in (model, ref)}
+        # zero when the spacings agree: then positions are compared exactly as stored
+        shift = np.float32(model.surface_offset - ref.surface_offset)
         out: dict[str, Any] = {
             k: [] for k in ("step", "time_s", "chamfer_mm", "position_mse_m2", "kinetic_energy_rel_error")
         }
         pairs = {k: {"model": [], "reference": []} for k in ("density_error", "velocity_divergence_per_s")}
         pairs["kinetic_energy_J"] = {"model": [], "reference": []}
-        for i, step in enumerate(model.steps):
-            if step not in ref_index:
-                continue
+        for i, j in _common_frames(model, ref):
             mp, mv, _ = model.frame(i)
-            rp, rv, _ = ref.frame(ref_index[step])
-            out["step"].append(step)
-            out["time_s"].append(step * dt)
-            out["chamfer_mm"].append(1e3 * chamfer_distance(mp, rp))
-            out["position_mse_m2"].append(position_mse(mp, rp))
-            e_model, e_ref = kinetic_energy(mv, mass), kinetic_energy(rv, mass)
+            rp, rv, _ = ref.frame(j)
+            out["step"].append(model.steps[i])
+            out["time_s"].append(model.times[i])
+            out["chamfer_mm"].append(1e3 * chamfer_distance(mp - shift if shift else mp, rp))
+            out["position_mse_m2"].append(position_mse(mp, rp) if mp.shape == rp.shape else math.nan)
+            e_model, e_ref = kinetic_energy(mv, mass[id(model)]), kinetic_energy(rv, mass[id(ref)])
             pairs["kinetic_energy_J"]["model"].append(e_model)
             pairs["kinetic_energy_J"]["reference"].append(e_ref)
             out["kinetic_energy_rel_error"].append(relative_error(e_model, e_ref))
             for who, traj, p, v in (("model", model, mp, mv), ("reference", ref, rp, rv)):
-                m = _field(traj, p, v, settings, n0)
+                m = _field(traj, p, v, settings, n0[id(traj)])
                 pairs["density_error"][who].append(m.density_error)
                 pairs["velocity_divergence_per_s"][who].append(m.velocity_divergence)
         return {**out, **pairs}
@@ -575,12 +657,15 @@ def plot_pressure_slice(
 
     model, ref = _Trajectory.open(model_path), _Trajectory.open(reference_path)
     try:
-        dt, l0 = float(ref.attrs["dt"]), float(ref.attrs["l0"])
-        common = [s for s in model.steps if s in set(ref.steps)]
+        l0 = max(model.l0, ref.l0)  # the coarser spacing: a slab that holds a layer of both rollouts
+        common = _common_frames(model, ref)
+        if not common:
+            raise RolloutError(f"{model_path} and {reference_path} store no frame at the same time")
         if options.slice_time is None:
-            step = common[len(common) // 2]
+            i_model, i_ref = common[len(common) // 2]
         else:
-            step = min(common, key=lambda s: abs(s * dt - options.slice_time))
+            i_model, i_ref = min(common, key=lambda ij: abs(model.times[ij[0]] - options.slice_time))
+        time_s = model.times[i_model]
         axis = _AXES[options.slice_axis]
         across = 1 - axis  # the other horizontal axis is drawn left to right, z up
         if options.slice_position is None:
@@ -590,8 +675,8 @@ def plot_pressure_slice(
             centre = options.slice_position
         half = 0.5 * options.slice_width * l0
         panels = []
-        for name, traj in (("model", model), ("MPS", ref)):
-            pos, _, p = traj.frame(traj.steps.index(step))
+        for name, traj, index in (("model", model, i_model), ("MPS", ref, i_ref)):
+            pos, _, p = traj.frame(index)
             inside = np.abs(pos[:, axis] - centre) < half
             panels.append((name, pos[inside], p[inside]))
         bnd = ref.boundary_position
@@ -603,7 +688,7 @@ def plot_pressure_slice(
         for ax, (name, pos, p) in zip(axes, panels, strict=True):
             ax.scatter(walls[:, across], walls[:, 2], s=6, c="0.8", marker="s", linewidths=0)
             sc = ax.scatter(pos[:, across], pos[:, 2], s=10, c=p, cmap="jet", vmin=0.0, vmax=pmax, marker="s")
-            ax.set_title(f"{name}, t = {step * dt:.3f} s ({len(p)} particles)")
+            ax.set_title(f"{name}, t = {time_s:.3f} s ({len(p)} particles)")
             ax.set_aspect("equal")
             ax.set_xlabel("xyz"[across] + " (m)")
         axes[0].set_ylabel("z (m)")
@@ -612,8 +697,8 @@ def plot_pressure_slice(
         fig.savefig(path, dpi=110)
         plt.close(fig)
         return {
-            "time_s": step * dt,
-            "step": step,
+            "time_s": time_s,
+            "step": model.steps[i_model],
             "axis": options.slice_axis,
             "position_m": float(centre),
             "width_l0": options.slice_width,
@@ -701,9 +786,11 @@ def evaluate(cfg: DictConfig) -> dict[str, Any]:
         "summary": _summaries(frames, options.horizons),
         "frames": frames,
         "pressure_slice": slice_info,
+        "timing": run["timing"],
         "reference": {
             "path": str(reference_path),
             "reused": reused,
+            "overrides": options.reference,
             "key_hash": key_hash(key),
             "key": key,
         },
