@@ -1,0 +1,227 @@
+"""benchmarks.tables: the Pareto front, the row files, and a tiny profile end to end (untrained weights)."""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import math
+from dataclasses import replace
+from pathlib import Path
+
+import pytest
+import yaml
+
+from benchmarks.pareto import dominates, pareto_front
+from benchmarks.tables import (
+    MARK_END,
+    MARK_START,
+    QUICK,
+    Bench,
+    coarsened_scene,
+    compose_config,
+    hydra_value,
+    run_all,
+    steps_in,
+    write_readme,
+)
+from lagfluid.errors import ConfigError
+from lagfluid.evaluate import EvaluateOptions, key_hash, reference_key, reference_settings
+from lagfluid.run import CONF_DIR
+
+
+# ------------------------------------------------------------------------------------------- Pareto front
+def test_pareto_front_of_hand_made_points():
+    points = [
+        (1.0, 10.0),  # 0 front: the second cheapest
+        (2.0, 5.0),  # 1 front
+        (3.0, 5.0),  # 2 dominated by 1 (dearer, same error)
+        (4.0, 1.0),  # 3 front
+        (5.0, 2.0),  # 4 dominated by 3 (dearer and worse)
+        (0.5, 20.0),  # 5 front: the cheapest, however bad
+        (2.0, 5.0),  # 6 front: equal to 1, and neither of two equal points dominates the other
+        (math.nan, 0.0),  # 7 a run that stopped: never on the front
+        (10.0, 0.5),  # 8 front: the most accurate
+        (10.0, 0.7),  # 9 dominated by 8 (same cost, worse)
+        (0.5, math.inf),  # 10 not finite
+    ]
+    assert pareto_front(points) == [5, 0, 1, 6, 3, 8]
+
+
+def test_dominates_needs_one_strict_improvement():
+    assert dominates((1, 1), (2, 2)) and dominates((1, 2), (1, 3)) and dominates((1, 3), (2, 3))
+    assert not dominates((1, 1), (1, 1)) and not dominates((1, 3), (2, 2)) and not dominates((2, 2), (1, 1))
+
+
+def test_pareto_front_of_nothing_or_one_point():
+    assert (
+        pareto_front([]) == [] and pareto_front([(3.0, 4.0)]) == [0] and pareto_front([(math.nan, 1)]) == []
+    )
+
+
+# ------------------------------------------------------------------------------------------- helpers
+def test_coarsened_scene_keeps_the_physical_dam():
+    dam = compose_config(["scene=dam"]).scene
+    assert coarsened_scene(dam, 2) == {"l0": 0.1, "fluid_size": [5, 10, 10], "tank_size": [21, 11]}
+    small = compose_config(["scene=dam_small"]).scene
+    c = coarsened_scene(small, 2)
+    # fluid 0.4 x 0.4 x 0.5 m and tank surfaces 1.0 x 0.4 m apart at both spacings
+    assert [f * c["l0"] for f in c["fluid_size"]] == pytest.approx([f * 0.05 for f in small.fluid_size])
+    assert [(t - 1) * c["l0"] for t in c["tank_size"]] == pytest.approx(
+        [(t - 1) * 0.05 for t in small.tank_size]
+    )
+    with pytest.raises(
+        ConfigError, match=r"dam_medium .*fluid_size \[20, 25, 20\].* cannot be coarsened by 2"
+    ):
+        coarsened_scene(compose_config(["scene=dam_medium"]).scene, 2)
+    with pytest.raises(ConfigError, match="waterfall has no fluid_size"):
+        coarsened_scene(compose_config(["scene=waterfall"]).scene, 2)
+
+
+def test_steps_in_names_a_duration_that_is_not_whole_steps():
+    assert steps_in(1.0, 0.002, "x") == 500 and steps_in(0.04, 0.0025, "x") == 16
+    with pytest.raises(
+        ConfigError, match=r"frame interval: 0.04 s is not a whole number of steps of dt = 0.003"
+    ):
+        steps_in(0.04, 0.003, "frame interval")
+
+
+def test_hydra_value_round_trips_through_an_override():
+    value = {"dt": None, "steps": 500, "scene": {"params": {"l0": 0.05}, "fluid_size": [10, 20, 20]}}
+    cfg = compose_config([f"evaluate.reference={hydra_value(value)}"])
+    assert cfg.evaluate.reference == value
+
+
+def test_every_tradeoff_and_fig5_row_file_is_compared_with_the_default_mps():
+    """The row files of the full profile: one reference (MPS at the defaults on the dam) for all of them."""
+    default = key_hash(reference_key(compose_config(["experiment=table3_dam_mps"])))
+    names = ["fig5_fgn", *(p.stem for p in (CONF_DIR / "experiment").glob("tradeoff_*.yaml"))]
+    names += [p.stem for p in (CONF_DIR / "experiment").glob("table3_dam_*.yaml")]
+    assert len(names) >= 12
+    for name in names:
+        cfg = compose_config([f"experiment={name}"])
+        assert cfg.task == "evaluate", name
+        overrides = EvaluateOptions.from_config(cfg.evaluate).reference
+        assert key_hash(reference_key(reference_settings(cfg, overrides))) == default, name
+
+
+# ------------------------------------------------------------------------------------------- end to end
+@pytest.fixture(scope="module")
+def untrained(tmp_path_factory) -> Path:
+    """Freshly initialised FGN checkpoints (the shipped weights may not exist yet)."""
+    from lagfluid.models.checkpoint import build_network, network_payload, save_checkpoint
+
+    out = tmp_path_factory.mktemp("weights")
+    options = yaml.safe_load((CONF_DIR / "model" / "fgn.yaml").read_text())
+    for kind in ("advection", "collision", "pressure"):
+        net = build_network(kind, options[kind])
+        save_checkpoint(out / f"{kind}.pt", network_payload(net, kind, options[kind], 0, {}))
+    return out
+
+
+TINY = replace(
+    QUICK,
+    name="tiny",
+    prefix="tables_tiny",
+    dam_duration=0.02,
+    frame_interval=0.01,
+    waterfall=None,
+    timing_warmup=1,
+    timing_steps=2,
+    table4_duration=0.01,
+    table4_materials=((2.0, 1e-3), (50.0, 0.05)),
+    fig5_dts=(0.001, 0.002, 0.005),
+    mps_dts=(0.005,),
+    ppe_tols=(1e-1,),
+    coarse=((2, None),),
+    simulators=("mps", "fgn", "hybrid_pressure"),
+    figures=False,
+    description="tiny test profile",
+)
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory, untrained):
+    root = tmp_path_factory.mktemp("tables")
+    readme = root / "README.md"
+    readme.write_text(f"# x\n\n## Results\n\nprose\n\n{MARK_START}\nold\n{MARK_END}\n\n## Next\n")
+    args = argparse.Namespace(
+        only=None,
+        weights=str(untrained),
+        threads=1,
+        results=str(root / "results"),
+        runs_dir=str(root / "runs"),
+        readme=True,
+        readme_path=str(readme),
+    )
+    return root, run_all(TINY, args)
+
+
+def test_tiny_profile_writes_every_output(tiny_run):
+    root, written = tiny_run
+    results = root / "results"
+    for name in ("report.md", "table2.csv", "table3.csv", "table4.csv", "fig5.csv", "tradeoff.csv"):
+        assert (results / f"tables_tiny_{name}").stat().st_size > 100, name
+    for name in ("fig5.png", "tradeoff.png"):
+        assert (results / f"tables_tiny_{name}").stat().st_size > 10_000, name
+    assert written["failed"] == []
+    report = (results / "tables_tiny_report.md").read_text()
+    for heading in (
+        "## Tables 1 and 3",
+        "## Table 2",
+        "## Table 4",
+        "## Fig. 5",
+        "## Speed/accuracy",
+        "## Provenance",
+    ):
+        assert heading in report
+    assert "python -m lagfluid.run experiment=tradeoff_dam_mps_l0_10cm" in report  # each row's command
+    with (results / "tables_tiny_table3.csv").open() as f:
+        rows = list(csv.DictReader(f))
+    assert [r["simulator"] for r in rows] == ["Ground truth (MPS)", "FGN", "hybrid: learned pressure"]
+    assert all(r["machine"] and r["git_commit"] and r["overrides"] for r in rows)  # provenance per number
+
+
+def test_tiny_profile_rewrites_only_the_marked_readme_part(tiny_run):
+    root, written = tiny_run
+    text = (root / "README.md").read_text()
+    assert written["readme"] and "old" not in text and "prose" in text and text.endswith("## Next\n")
+    assert (
+        "**Table 1**" in text and "**Table 2**" in text and "**Table 4**" in text and "tiny profile" in text
+    )
+
+
+def test_tradeoff_rows_share_one_reference_and_mark_the_front(tiny_run):
+    _, written = tiny_run
+    rows = written["rows"]["tradeoff"]
+    labels = {r["simulator"]: r for r in rows}
+    assert {"MPS", "FGN", "MPS dt = 5 ms", "MPS PPE tol 0.1 (rel)", "MPS l0 = 10 cm", "FGN dt = 5 ms"} <= set(
+        labels
+    )
+    assert len({r["reference"] for r in rows}) == 1
+    mps = labels["MPS"]
+    assert mps["chamfer_mean_mm"] == 0.0 and mps["chamfer_t0_mm"] == 0.0  # MPS against itself
+    # a coarse particle sits at the centre of a cube of 8 reference particles: sqrt(3)/2 l0 away at t = 0
+    assert labels["MPS l0 = 10 cm"]["chamfer_t0_mm"] == pytest.approx(1e3 * 0.05 * math.sqrt(3) / 2, rel=1e-4)
+    assert labels["MPS dt = 5 ms"]["steps"] == 4 and labels["MPS dt = 5 ms"]["chamfer_t0_mm"] == 0.0
+    for metric in ("chamfer_mean_mm", "density_error_mean"):
+        points = [
+            (r["s_per_simulated_s"], r[metric]) if r["status"] == "complete" else (math.nan,) * 2
+            for r in rows
+        ]
+        assert [i for i, r in enumerate(rows) if r[f"pareto_{metric}"]] == sorted(pareto_front(points))
+    assert mps["pareto_chamfer_mean_mm"] or any(
+        r["chamfer_mean_mm"] == 0.0 and r["s_per_simulated_s"] <= mps["s_per_simulated_s"] for r in rows
+    )
+
+
+def test_write_readme_without_markers_leaves_the_file(tmp_path):
+    readme = tmp_path / "README.md"
+    readme.write_text("# nothing marked\n")
+    assert write_readme("new", readme) is False and readme.read_text() == "# nothing marked\n"
+
+
+def test_bench_rejects_a_frame_interval_that_is_not_whole_steps(untrained, tmp_path):
+    args = argparse.Namespace(weights=str(untrained), threads=1, runs_dir=str(tmp_path))
+    bench = Bench(replace(TINY, frame_interval=0.003), args)
+    with pytest.raises(ConfigError, match=r"0\.003 s is not a whole number of steps of dt = 0\.002"):
+        bench.dam_overrides("dam_small", 0.03)
