@@ -236,10 +236,11 @@ QUICK = Profile(
     ),
 )
 
-# Measured on the project's 2-core CPU machine (Intel Xeon @ 2.8 GHz, 2026-11-25, 1 thread, other jobs
-# running; the full profile's estimate uses them as they are, so on a quiet machine it is pessimistic):
-# wall time per fluid particle per step, and what each evaluate row costs besides its steps.
-_US_PER_PARTICLE_STEP = {"mps": 48.0, "learned": 30.0}
+# Wall time per fluid particle per step, measured on the project's 2-core CPU machine (Intel Xeon @ 2.8 GHz,
+# 2026-11-25, 1 torch thread, two training jobs running): MPS 47 us on dam, 49 on the half-size water fall,
+# 94 on dam_large (early steps; the PPE grows as the flow develops, hence 55); FGN 28 on dam, 19 on the
+# water fall. With the row overheads below the quick profile was estimated at 2.3 min and took 1.3-1.5.
+_US_PER_PARTICLE_STEP = {"mps": 55.0, "learned": 30.0}
 _ROW_OVERHEAD_S = 4.0
 _FRAME_OVERHEAD_S_PER_1K = 0.03  # per stored frame and 1,000 fluid particles (metrics of model and MPS)
 
@@ -1157,10 +1158,7 @@ def part_fig5(bench: Bench, report: Report, fig5: tuple[list[Run], float | None,
         for r, f in zip(runs, frames, strict=True)
     ]
     report.csv("fig5", rows)
-    verdict = (
-        f"largest dt whose {p.dam_duration:g} s rollout completes: {fmt(1e3 * stable) if stable else '-'} ms"
-    )
-    verdict += f"; the guard stopped dt = {1e3 * stopped:g} ms" if stopped else "; every dt tried completed"
+    verdict = fig5_verdict(p.dam_duration, runs, stable, stopped)
     png = report.path("fig5.png")
     plot_fig5(png, runs, verdict, f"FGN vs MPS on {p.dam_scene} at several dt ({p.name} profile)")
 
@@ -1181,6 +1179,19 @@ def part_fig5(bench: Bench, report: Report, fig5: tuple[list[Run], float | None,
         f"{md_table(header, cells, 'rrrrrrl')}\n\n![Fig. 5]({png.name})\n"
     )
     report.readme["fig5"] = f"**Fig. 5**: {verdict} (paper: FGN converges for every dt < 5 ms).\n"
+
+
+def fig5_verdict(duration: float, runs: list[Run], stable: float | None, stopped: float | None) -> str:
+    """One line on Fig. 5's sweep: the largest dt that completed and what stopped the next one."""
+    if stable is None and stopped is None:
+        return "no dt produced a rollout (every row failed, see the table)"
+    text = f"largest dt whose {duration:g} s rollout completes: {fmt(1e3 * stable) if stable else 'none'} ms"
+    if stopped is not None:
+        return text + f"; the rollout guard stopped dt = {1e3 * stopped:g} ms"
+    failed = [r.info["dt"] for r in runs if not r.ok]
+    if failed:
+        return text + f"; dt = {', '.join(f'{1e3 * d:g}' for d in failed)} ms failed (see the table)"
+    return text + " (every dt tried completed; the largest tried is a lower bound)"
 
 
 def part_table4(bench: Bench, report: Report, dam_runs: list[Run]) -> None:
