@@ -373,8 +373,8 @@ class Bench:
 
     def model_overrides(self, sim: Simulator) -> list[str]:
         """Weights of a learned simulator: ``--weights`` (else the shipped ones) or the authors'."""
-        if sim.model == "fgn_original":
-            return [f"model.weights={AUTHORS_WEIGHTS}"]
+        if sim.model == "fgn_original":  # relative when possible: the commands in the report stay portable
+            return [f"model.weights={os.path.relpath(AUTHORS_WEIGHTS)}"]
         if sim.learned and self.weights:
             return [f"model.weights={self.weights}"]
         return []
@@ -447,7 +447,7 @@ class Bench:
             if cfg.task != "evaluate":
                 raise ConfigError(f"experiment {run.experiment} is task={cfg.task}, not evaluate")
             run.metrics = evaluate(cfg)
-        except Exception as err:
+        except Exception as err:  # recorded: one failed row must not lose the hour of rows around it
             run.error = f"{type(err).__name__}: {err}".splitlines()[0]
             log.warning("row %s failed: %s", run.key, run.error)
         run.info["wall_s"] = time.perf_counter() - start
@@ -495,7 +495,7 @@ class Bench:
                 "stages_ms": {k: 1e3 * median(v) for k, v in record["stage_seconds"].items()},
                 "timed_steps": len(steps),
             }
-        except Exception as err:
+        except Exception as err:  # recorded: one failed row must not lose the hour of rows around it
             run.error = f"{type(err).__name__}: {err}".splitlines()[0]
             log.warning("row %s failed: %s", run.key, run.error)
         run.info["wall_s"] = time.perf_counter() - start
@@ -1374,7 +1374,7 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
         "--threads", type=int, default=os.cpu_count() or 1, help="torch threads (default: all cores)"
     )
     ap.add_argument("--results", default=str(RESULTS), help="where the md/csv/png files go")
-    ap.add_argument("--runs-dir", default=str(REPO / "runs" / "tables"), help="rollouts and MPS references")
+    ap.add_argument("--runs-dir", default="runs/tables", help="rollouts and MPS references")
     ap.add_argument(
         "--readme",
         action=argparse.BooleanOptionalAction,
