@@ -309,7 +309,8 @@ def mps_neighbor_list(state: ParticleState, settings: SolverSettings) -> VerletN
     """A Verlet list with the MPS solver's cutoff, skin, backend and wall hops (so the same wall targets)."""
     mps = SplitStepSimulator("mps", settings, ExactAdvection(), CollisionRule(), ExactPressure())
     l0 = state.params.l0
-    cutoff, skin = mps.cutoff(state.params) * l0, settings.neighbor_skin * l0
+    cutoff = mps.cutoff(state.params) * l0
+    skin = settings.neighbor_skin_fraction * cutoff
     return VerletNeighborList(cutoff, skin, settings.neighbor_backend, settings.wall_hops)
 
 

@@ -153,7 +153,7 @@ def test_cli_guard_stop_is_one_clear_line(tmp_path):
     ("override", "message"),
     [
         ("solver.n0_from=foo", "solver.n0_from must be one of lattice, initial"),
-        ("solver.neighbors.skin=-1", "solver.neighbors.skin must be >= 0"),
+        ("solver.neighbors.skin_fraction=-1", "solver.neighbors.skin_fraction must be >= 0"),
         ("solver.ppe.method=foo", "solver.ppe.method must be one of"),
         ("write_every=0", "write_every >= 1"),
         ("scene.builder=nope", "unknown scene 'nope'"),

@@ -45,7 +45,7 @@ _NESTED_KEYS: dict[tuple[str, str], tuple[str, type]] = {
     ("ppe", "maxiter"): ("ppe_maxiter", int),
     ("ppe", "warm_start"): ("ppe_warm_start", bool),
     ("neighbors", "backend"): ("neighbor_backend", str),
-    ("neighbors", "skin"): ("neighbor_skin", float),
+    ("neighbors", "skin_fraction"): ("neighbor_skin_fraction", float),
     ("neighbors", "wall_hops"): ("wall_hops", int),
 }
 
@@ -73,7 +73,7 @@ class SolverSettings:
     ppe_maxiter: int = 200
     ppe_warm_start: bool = True
     neighbor_backend: str = "auto"
-    neighbor_skin: float = 0.3
+    neighbor_skin_fraction: float = 0.3
     wall_hops: int | None = 2
     extra_radii: tuple[float, ...] = ()  # radii (in l0) that learned stages need beyond the MPS ones
 
@@ -97,8 +97,8 @@ class SolverSettings:
                 raise bad(key, value, "one of " + ", ".join(allowed))
         if self.wall_hops is not None and not (isinstance(self.wall_hops, int) and self.wall_hops >= 1):
             raise bad("neighbors.wall_hops", self.wall_hops, "an integer >= 1 or null (every wall)")
-        if not self.neighbor_skin >= 0:
-            raise bad("neighbors.skin", self.neighbor_skin, ">= 0")
+        if not self.neighbor_skin_fraction >= 0:
+            raise bad("neighbors.skin_fraction", self.neighbor_skin_fraction, ">= 0")
         if not (self.ppe_tol > 0 and self.ppe_maxiter >= 1):
             raise bad("ppe.tol / ppe.maxiter", (self.ppe_tol, self.ppe_maxiter), "> 0 / >= 1")
         if not 0 < self.surface_beta <= 1:
@@ -349,9 +349,10 @@ class SplitStepSimulator:
             self.constants = lattice_constants(state.params.l0, self.settings, state.params.dim)
         else:
             self.constants = initial_constants(state, self.settings)
+        cutoff = self.cutoff(state.params) * state.params.l0
         self.neighbors = VerletNeighborList(
-            self.cutoff(state.params) * state.params.l0,
-            self.settings.neighbor_skin * state.params.l0,
+            cutoff,
+            self.settings.neighbor_skin_fraction * cutoff,
             self.settings.neighbor_backend,
             self.settings.wall_hops,
         )
