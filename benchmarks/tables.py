@@ -48,6 +48,7 @@ import logging
 import math
 import os
 import platform
+import re
 import shutil
 import sys
 import time
@@ -654,8 +655,9 @@ def status(run: Run) -> str:
     if not run.ok:
         return f"failed: {run.error}"
     if not run.complete:
-        reason = str(run.metrics.get("stop_reason", "")).split(";")[0]
-        return f"stopped after {run.metrics.get('steps')} steps: {reason}"
+        # the guard's message without its coordinates and advice: "step 12: fluid particle 3 left the domain"
+        reason = re.split(r" at \[| \[|; | \(", str(run.metrics.get("stop_reason", "")))[0]
+        return f"stopped: {reason}"
     return "complete"
 
 
@@ -1187,7 +1189,8 @@ def fig5_verdict(duration: float, runs: list[Run], stable: float | None, stopped
         return "no dt produced a rollout (every row failed, see the table)"
     text = f"largest dt whose {duration:g} s rollout completes: {fmt(1e3 * stable) if stable else 'none'} ms"
     if stopped is not None:
-        return text + f"; the rollout guard stopped dt = {1e3 * stopped:g} ms"
+        why = next((status(r) for r in runs if r.info.get("dt") == stopped), "stopped")
+        return text + f"; the rollout guard stopped dt = {1e3 * stopped:g} ms ({why})"
     failed = [r.info["dt"] for r in runs if not r.ok]
     if failed:
         return text + f"; dt = {', '.join(f'{1e3 * d:g}' for d in failed)} ms failed (see the table)"
