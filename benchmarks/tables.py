@@ -1189,7 +1189,7 @@ def fig5_verdict(duration: float, runs: list[Run], stable: float | None, stopped
         return "no dt produced a rollout (every row failed, see the table)"
     text = f"largest dt whose {duration:g} s rollout completes: {fmt(1e3 * stable) if stable else 'none'} ms"
     if stopped is not None:
-        why = next((status(r) for r in runs if r.info.get("dt") == stopped), "stopped")
+        why = next((status(r).removeprefix("stopped: ") for r in runs if r.info.get("dt") == stopped), "")
         return text + f"; the rollout guard stopped dt = {1e3 * stopped:g} ms ({why})"
     failed = [r.info["dt"] for r in runs if not r.ok]
     if failed:
