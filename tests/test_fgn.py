@@ -406,3 +406,35 @@ def test_exported_weights_drop_the_optimizer_and_still_load(trained, tmp_path):
         original, _ = load_network(trained / path.name, ckpt["kind"])
         for (k, a), (_, b) in zip(net.state_dict().items(), original.state_dict().items(), strict=True):
             assert torch.equal(a, b), k
+
+
+def test_shipped_weights_fit_the_fgn_config_and_roll_out_by_default(tmp_path):
+    """``model=fgn`` works out of the box: the packaged weights exist, match conf/model/fgn.yaml, roll out."""
+    from lagfluid.models.fgn_simulator import SHIPPED_WEIGHTS
+
+    assert (SHIPPED_WEIGHTS / "MODEL_CARD.md").is_file()
+    options = yaml.safe_load((CONF_DIR / "model" / "fgn.yaml").read_text())
+    for kind in ("advection", "collision", "pressure"):
+        path = SHIPPED_WEIGHTS / f"{kind}.pt"
+        ckpt = read_checkpoint(path, kind)
+        # A config edit that the shipped weights were not trained with must fail here, not at a user's run.
+        assert ckpt["options"] == options[kind], kind
+        assert "optimizer" not in ckpt and ckpt["step"] > 0 and path.stat().st_size < 1_000_000
+    cfg = _compose("task=simulate", "model=fgn", "scene=dam_small", "steps=20", f"out_dir={tmp_path}")
+    assert cfg.model.weights is None
+    metrics = simulate(cfg)
+    assert metrics["complete"], metrics["stop_reason"]
+    networks = json.loads(metrics["simulator"]["networks"])
+    assert all(Path(networks[k]["source"]).parent == SHIPPED_WEIGHTS for k in networks)
+
+
+def test_stage_losses_and_an_unknown_loss_is_named():
+    from lagfluid.train import stage_loss
+
+    pred = torch.tensor([0.0, 0.5, 100.0])
+    target = torch.zeros(3)
+    assert float(stage_loss(pred, target, "mse")) == pytest.approx((0.25 + 1e4) / 3)
+    # Huber: quadratic inside delta, linear outside, so one impact-sized outlier does not set the gradient.
+    assert float(stage_loss(pred, target, "huber", delta=1.0)) == pytest.approx((0.125 + 99.5) / 3)
+    with pytest.raises(ConfigError, match="'l1'"):
+        stage_loss(pred, target, "l1")
