@@ -22,3 +22,21 @@ def authors_dam_grid() -> Path:
     if not path.is_file():
         pytest.skip("../shared/reference is not present")
     return path
+
+
+@pytest.fixture(scope="session")
+def untrained_weights(tmp_path_factory) -> Path:
+    """Checkpoints of freshly initialised FGN networks (``model=fgn``/``hybrid`` need weights to build).
+
+    Tests that are about the scheme, not about what the shipped weights learned, use these.
+    """
+    import yaml
+
+    from lagfluid.models.checkpoint import build_network, network_payload, save_checkpoint
+
+    out = tmp_path_factory.mktemp("weights")
+    options = yaml.safe_load((REPO / "conf" / "model" / "fgn.yaml").read_text())
+    for kind in ("advection", "collision", "pressure"):
+        net = build_network(kind, options[kind])
+        save_checkpoint(out / f"{kind}.pt", network_payload(net, kind, options[kind], 0, {}))
+    return out

@@ -50,21 +50,6 @@ def test_struct_mode_rejects_typos():
         _compose("stepz=3")
 
 
-@pytest.fixture(scope="module")
-def untrained_weights(tmp_path_factory):
-    """Checkpoints of freshly initialised FGN networks (``model=fgn``/``hybrid`` need weights to build)."""
-    import yaml
-
-    from lagfluid.models.checkpoint import build_network, network_payload, save_checkpoint
-
-    out = tmp_path_factory.mktemp("weights")
-    options = yaml.safe_load((CONF_DIR / "model" / "fgn.yaml").read_text())
-    for kind in ("advection", "collision", "pressure"):
-        net = build_network(kind, options[kind])
-        save_checkpoint(out / f"{kind}.pt", network_payload(net, kind, options[kind], 0, {}))
-    return out
-
-
 @pytest.mark.parametrize("model", available_models())
 @pytest.mark.parametrize("scene", _group_names("scene"))
 def test_every_model_and_scene_composes_and_instantiates(model, scene, request):

@@ -160,21 +160,6 @@ def test_fgn_original_against_mps(cli_run, tmp_path, authors_dam_grid):
     assert saved["summary"]["chamfer_mm"]["max"] == pytest.approx(max(frames["chamfer_mm"]))
 
 
-@pytest.fixture(scope="module")
-def untrained_weights(tmp_path_factory):
-    """Checkpoints of freshly initialised FGN networks (as tests/test_cli.py builds them)."""
-    import yaml
-
-    from lagfluid.models.checkpoint import build_network, network_payload, save_checkpoint
-
-    out = tmp_path_factory.mktemp("weights")
-    options = yaml.safe_load((CONF_DIR / "model" / "fgn.yaml").read_text())
-    for kind in ("advection", "collision", "pressure"):
-        net = build_network(kind, options[kind])
-        save_checkpoint(out / f"{kind}.pt", network_payload(net, kind, options[kind], 0, {}))
-    return out
-
-
 def test_hybrid_one_step_errors_follow_its_stages(cli_run, tmp_path, untrained_weights):
     # exact advection and collision, an untrained pressure network: the advection error is the exact
     # stage's (~0), the PPE residual is the network's (far from 0)

@@ -6,10 +6,8 @@ import argparse
 import csv
 import math
 from dataclasses import replace
-from pathlib import Path
 
 import pytest
-import yaml
 
 from benchmarks.pareto import dominates, pareto_front
 from benchmarks.tables import (
@@ -105,19 +103,6 @@ def test_every_tradeoff_and_fig5_row_file_is_compared_with_the_default_mps():
 
 
 # ------------------------------------------------------------------------------------------- end to end
-@pytest.fixture(scope="module")
-def untrained(tmp_path_factory) -> Path:
-    """Freshly initialised FGN checkpoints (the shipped weights may not exist yet)."""
-    from lagfluid.models.checkpoint import build_network, network_payload, save_checkpoint
-
-    out = tmp_path_factory.mktemp("weights")
-    options = yaml.safe_load((CONF_DIR / "model" / "fgn.yaml").read_text())
-    for kind in ("advection", "collision", "pressure"):
-        net = build_network(kind, options[kind])
-        save_checkpoint(out / f"{kind}.pt", network_payload(net, kind, options[kind], 0, {}))
-    return out
-
-
 TINY = replace(
     QUICK,
     name="tiny",
@@ -140,13 +125,13 @@ TINY = replace(
 
 
 @pytest.fixture(scope="module")
-def tiny_run(tmp_path_factory, untrained):
+def tiny_run(tmp_path_factory, untrained_weights):
     root = tmp_path_factory.mktemp("tables")
     readme = root / "README.md"
     readme.write_text(f"# x\n\n## Results\n\nprose\n\n{MARK_START}\nold\n{MARK_END}\n\n## Next\n")
     args = argparse.Namespace(
         only=None,
-        weights=str(untrained),
+        weights=str(untrained_weights),
         threads=1,
         results=str(root / "results"),
         runs_dir=str(root / "runs"),
@@ -220,8 +205,8 @@ def test_write_readme_without_markers_leaves_the_file(tmp_path):
     assert write_readme("new", readme) is False and readme.read_text() == "# nothing marked\n"
 
 
-def test_bench_rejects_a_frame_interval_that_is_not_whole_steps(untrained, tmp_path):
-    args = argparse.Namespace(weights=str(untrained), threads=1, runs_dir=str(tmp_path))
+def test_bench_rejects_a_frame_interval_that_is_not_whole_steps(untrained_weights, tmp_path):
+    args = argparse.Namespace(weights=str(untrained_weights), threads=1, runs_dir=str(tmp_path))
     bench = Bench(replace(TINY, frame_interval=0.003), args)
     with pytest.raises(ConfigError, match=r"0\.003 s is not a whole number of steps of dt = 0\.002"):
         bench.dam_overrides("dam_small", 0.03)
