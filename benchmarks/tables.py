@@ -32,7 +32,9 @@ Parts (``--only``):
   dt and a coarser resolution; the Pareto front is marked (:mod:`benchmarks.pareto`).
 
 Outputs (``benchmarks/results/``, prefix ``tables`` or ``tables_quick``): ``<prefix>_report.md`` (every
-table, the provenance and each row's overrides), ``<prefix>_{table3,table2,table4,fig5,tradeoff}.csv``,
+table, the provenance and each row's overrides), ``<prefix>_parts.json`` (the rendered parts, so that an
+``--only`` rerun replaces its parts and keeps the others, each saying when it ran),
+``<prefix>_{table3,table2,table4,fig5,tradeoff}.csv``,
 ``<prefix>_{fig5,tradeoff}.png``, ``<prefix>_fig4_dam_fgn.png`` and ``<prefix>_fig6_dam_fgn.png`` (paper
 Figs. 4 and 6 for FGN on the dam). The full profile also rewrites the README's results tables (between
 ``<!-- tables:start -->`` and ``<!-- tables:end -->``); ``--readme`` makes any profile do so. Rollouts
@@ -1008,6 +1010,60 @@ def write_readme(section: str, readme: Path = README) -> bool:
     return True
 
 
+def merge_parts(report: Report, partial: bool, commands: dict[str, str]) -> dict[str, dict[str, str]]:
+    """This run's report sections and README pieces, over those an earlier run saved (``--only`` reruns).
+
+    Every run saves what it rendered to ``<prefix>_parts.json`` with the date and commit of the run that
+    made each piece, so that ``--only table2`` (say, on a quieter machine) replaces Table 2 and keeps the
+    other parts, each still saying when it was run. A full run starts afresh.
+
+    Args:
+        report: this run's rendered parts.
+        partial: an ``--only`` run (merge with the saved parts) rather than a full one.
+        commands: this run's rows, ``{row key: command}``.
+
+    Returns:
+        ``{"sections": {part: markdown}, "readme": {piece: markdown}, "runs": {key: "date at commit"},
+        "commands": {row key: command}}``.
+    """
+    path = Path(f"{report.prefix}_parts.json")
+    merged: dict[str, dict[str, str]] = {"sections": {}, "readme": {}, "runs": {}, "commands": {}}
+    if partial and not path.is_file():
+        raise ConfigError(
+            f"--only reruns parts of an earlier run, but {path} is missing: run the whole profile first "
+            "(without --only), or the other parts would vanish from the report and the README"
+        )
+    if partial:
+        try:
+            saved = json.loads(path.read_text())
+            merged = {k: dict(saved.get(k, {})) for k in merged}
+        except (OSError, ValueError) as err:
+            log.warning("%s unreadable (%s): only this run's parts are written", path, err)
+    run = f"{report.meta['date']} at commit {report.meta['script_commit']}"
+    for kind in ("sections", "readme"):
+        for key, text in getattr(report, kind).items():
+            merged[kind][key] = text
+            merged["runs"][f"{kind}:{key}"] = run
+    merged["commands"].update(commands)
+    tmp = path.with_name(path.name + ".part")
+    tmp.write_text(json.dumps(merged, indent=1))
+    os.replace(tmp, path)
+    report.files.append(path)
+    return merged
+
+
+def earlier_parts(merged: dict[str, dict[str, str]], kind: str, run: str) -> str:
+    """A line naming the pieces of ``kind`` that come from earlier runs than ``run`` ('' when none)."""
+    older = {k.split(":", 1)[1]: v for k, v in merged["runs"].items() if k.startswith(kind) and v != run}
+    if not older:
+        return ""
+    return (
+        "Parts from earlier runs (`--only` reran the others): "
+        + "; ".join(f"{k}: {v}" for k, v in sorted(older.items()))
+        + ".\n\n"
+    )
+
+
 @dataclass
 class Report:
     """What a run of the script writes: CSV files, report sections, README pieces."""
@@ -1329,23 +1385,28 @@ def run_all(profile: Profile, args: argparse.Namespace) -> dict[str, Any]:
                 shutil.copy(src / name, dest)
                 figures += f"![{fig}]({dest.name})\n\n"
 
+    if figures:
+        report.sections["figures"] = f"## Figs. 4 and 6: FGN on the dam\n\n{figures}"
     elapsed = time.perf_counter() - start
     extra = {"CPU": cpu_model(), "profile": f"{profile.name}: {profile.description}"}
     extra["runtime"] = f"{elapsed / 60:.1f} min"
     extra["FGN weights"] = str(args.weights or f"shipped ({SHIPPED_WEIGHTS.relative_to(REPO)})")
     prov = provenance("benchmarks.tables", load, "cpu", **extra)
-    runs_md = "\n".join(f"- `{r.key}`: `{r.command}`" for r in bench.done.values())
-    body = "\n".join(
-        report.sections[k] for k in ("table3", "table2", "table4", "fig5", "tradeoff") if k in report.sections
+    merged = merge_parts(report, bool(args.only), {r.key: r.command for r in bench.done.values()})
+    runs_md = "\n".join(f"- `{key}`: `{command}`" for key, command in merged["commands"].items())
+    run = f"{meta['date']} at commit {meta['script_commit']}"
+    sections = merged["sections"]
+    body = earlier_parts(merged, "sections", run) + "\n".join(
+        sections[k] for k in ("table3", "table2", "table4", "fig5", "tradeoff") if k in sections
     )
     md = report.path("report.md")
     md.write_text(
         f"# Tables and figures ({profile.name} profile)\n\n{profile.description}.\n\n{body}\n"
-        + (f"## Figs. 4 and 6: FGN on the dam\n\n{figures}" if figures else "")
+        + sections.get("figures", "")
         + f"## Provenance\n\n{markdown(prov)}\n\n### Runs (each row's command)\n\n{runs_md}\n"
     )
     written: dict[str, Any] = {"files": report.files, "rows": report.rows, "readme": False}
-    if args.readme and report.readme:
+    if args.readme and merged["readme"]:
         label = (
             f"*{profile.name} profile*: {profile.description}. Run {meta['date']} at commit "
             f"{meta['script_commit']} on {machine}; FGN weights: {extra['FGN weights']}. Every table, each "
@@ -1353,7 +1414,9 @@ def run_all(profile: Profile, args: argparse.Namespace) -> dict[str, Any]:
             f"(benchmarks/results/{md.name}).\n\n"
         )
         order = ("table1", "table2", "table4", "fig5", "tradeoff")
-        section = label + "\n".join(report.readme[k] for k in order if k in report.readme)
+        pieces = merged["readme"]
+        section = label + earlier_parts(merged, "readme", run)
+        section += "\n".join(pieces[k] for k in order if k in pieces)
         written["readme"] = write_readme(section, Path(args.readme_path))
     written["failed"] = [r.key for r in bench.done.values() if not r.ok]
     written["elapsed_s"] = elapsed

@@ -210,3 +210,34 @@ def test_bench_rejects_a_frame_interval_that_is_not_whole_steps(untrained_weight
     bench = Bench(replace(TINY, frame_interval=0.003), args)
     with pytest.raises(ConfigError, match=r"0\.003 s is not a whole number of steps of dt = 0\.002"):
         bench.dam_overrides("dam_small", 0.03)
+
+
+def test_an_only_rerun_replaces_its_parts_and_keeps_the_others(tmp_path):
+    from benchmarks.tables import Report, earlier_parts, merge_parts
+
+    first = Report(tmp_path / "tables", {"date": "day 1", "script_commit": "aaa"})
+    first.sections = {"table2": "T2 old", "table3": "T3 old"}
+    first.readme = {"table1": "R1 old", "table2": "R2 old"}
+    merge_parts(first, partial=False, commands={"table2/mps": "cmd 2", "table3/dam/mps": "cmd 3"})
+
+    rerun = Report(tmp_path / "tables", {"date": "day 2", "script_commit": "bbb"})
+    rerun.sections, rerun.readme = {"table2": "T2 new"}, {"table2": "R2 new"}
+    merged = merge_parts(rerun, partial=True, commands={"table2/mps": "cmd 2 quiet"})
+    assert merged["sections"] == {"table2": "T2 new", "table3": "T3 old"}
+    assert merged["readme"] == {"table1": "R1 old", "table2": "R2 new"}
+    assert merged["commands"] == {"table2/mps": "cmd 2 quiet", "table3/dam/mps": "cmd 3"}
+    note = earlier_parts(merged, "sections", "day 2 at commit bbb")
+    assert "table3: day 1 at commit aaa" in note and "table2" not in note
+
+    full = Report(tmp_path / "tables", {"date": "day 3", "script_commit": "ccc"})
+    full.sections = {"table2": "T2 full"}
+    assert merge_parts(full, partial=False, commands={})["sections"] == {"table2": "T2 full"}  # afresh
+
+
+def test_an_only_run_without_an_earlier_full_run_is_refused(tmp_path):
+    from benchmarks.tables import Report, merge_parts
+    from lagfluid.errors import ConfigError
+
+    report = Report(tmp_path / "tables", {"date": "d", "script_commit": "c"})
+    with pytest.raises(ConfigError, match=r"tables_parts\.json is missing"):
+        merge_parts(report, partial=True, commands={})
