@@ -218,14 +218,17 @@ def test_an_only_rerun_replaces_its_parts_and_keeps_the_others(tmp_path):
     first = Report(tmp_path / "tables", {"date": "day 1", "script_commit": "aaa"})
     first.sections = {"table2": "T2 old", "table3": "T3 old"}
     first.readme = {"table1": "R1 old", "table2": "R2 old"}
-    merge_parts(first, partial=False, commands={"table2/mps": "cmd 2", "table3/dam/mps": "cmd 3"})
+    merge_parts(
+        first, partial=False, commands={"table2/mps": "cmd 2", "table3/dam/mps": "cmd 3"}, invocation="full"
+    )
 
     rerun = Report(tmp_path / "tables", {"date": "day 2", "script_commit": "bbb"})
     rerun.sections, rerun.readme = {"table2": "T2 new"}, {"table2": "R2 new"}
-    merged = merge_parts(rerun, partial=True, commands={"table2/mps": "cmd 2 quiet"})
+    merged = merge_parts(rerun, partial=True, commands={"table2/mps": "cmd 2 quiet"}, invocation="only t2")
     assert merged["sections"] == {"table2": "T2 new", "table3": "T3 old"}
     assert merged["readme"] == {"table1": "R1 old", "table2": "R2 new"}
     assert merged["commands"] == {"table2/mps": "cmd 2 quiet", "table3/dam/mps": "cmd 3"}
+    assert merged["history"] == {"day 1 at commit aaa": "full", "day 2 at commit bbb": "only t2"}
     note = earlier_parts(merged, "sections", "day 2 at commit bbb")
     assert "table3: day 1 at commit aaa" in note and "table2" not in note
 
