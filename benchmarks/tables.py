@@ -239,12 +239,13 @@ QUICK = Profile(
     ),
 )
 
-# Wall time per fluid particle per step, measured on the project's 2-core CPU machine (Intel Xeon @ 2.8 GHz,
-# 2026-11-25, 1 torch thread, two training jobs running): MPS 47 us on dam, 49 on the half-size water fall,
-# 94 on dam_large (early steps; the PPE grows as the flow develops, hence 55); FGN 28 on dam, 19 on the
-# water fall. With the row overheads below the quick profile was estimated at 2.3 min and took 1.3-1.5.
-_US_PER_PARTICLE_STEP = {"mps": 55.0, "learned": 30.0}
-_ROW_OVERHEAD_S = 4.0
+# Wall time per fluid particle per step of a row (rollout, evaluation and, for MPS, its reference),
+# measured on the project's 2-core CPU machine (Intel Xeon, 2 torch threads, quiet) in the full run of
+# 2026-12-01 (27.9 min): MPS 47 us on dam and 35 on the half-size water fall, FGN 19 and 17, the hybrids
+# 20-35; row overhead ~1 s (the quick profile took 0.6 min). With these the full profile is estimated at
+# 28 min; the estimate before the Verlet-skin fix (55 / 30 / 4 s) said 42.
+_US_PER_PARTICLE_STEP = {"mps": 42.0, "learned": 18.0}
+_ROW_OVERHEAD_S = 1.0
 _FRAME_OVERHEAD_S_PER_1K = 0.03  # per stored frame and 1,000 fluid particles (metrics of model and MPS)
 
 
@@ -962,8 +963,13 @@ def cpu_model() -> str:
     return platform.processor() or "unknown CPU"
 
 
-def estimate_seconds(profile: Profile) -> float:
-    """Expected runtime of ``profile`` from the per-particle-step costs measured on this machine."""
+def estimate_seconds(profile: Profile, parts: Sequence[str] = PARTS) -> float:
+    """Expected runtime of ``parts`` of ``profile`` from the per-particle-step costs measured on this machine.
+
+    Follows :func:`run_all`: the dam rows run for every part but Table 2, Fig. 5's rows for Fig. 5 and the
+    trade-off.
+    """
+    parts = set(parts)
     sims = len(all_simulators(profile.simulators))
     mps, learned = (_US_PER_PARTICLE_STEP[k] * 1e-6 for k in ("mps", "learned"))
     dt = 0.002
@@ -984,17 +990,23 @@ def estimate_seconds(profile: Profile) -> float:
     p = profile
     n = fluid(p.dam_scene)
     frames = round(p.dam_duration / p.frame_interval) + 1
-    total = group(n, p.dam_duration)
-    total += len(p.ppe_tols) * row(n, round(p.dam_duration / dt), frames, mps)
-    total += sum(row(n, round(p.dam_duration / d), frames, mps) for d in p.mps_dts)
-    total += sum(row(n // f**3, round(p.dam_duration / (d or dt)), frames, mps) for f, d in p.coarse)
-    total += sum(row(n, round(p.dam_duration / d), frames, learned) for d in p.fig5_dts if d != dt)
-    if p.waterfall:
+    total = 0.0
+    if parts - {"table2"}:
+        total += group(n, p.dam_duration)
+    if "tradeoff" in parts:
+        total += len(p.ppe_tols) * row(n, round(p.dam_duration / dt), frames, mps)
+        total += sum(row(n, round(p.dam_duration / d), frames, mps) for d in p.mps_dts)
+        total += sum(row(n // f**3, round(p.dam_duration / (d or dt)), frames, mps) for f, d in p.coarse)
+    if parts & {"fig5", "tradeoff"}:
+        total += sum(row(n, round(p.dam_duration / d), frames, learned) for d in p.fig5_dts if d != dt)
+    if "table3" in parts and p.waterfall:
         total += group(fluid("waterfall", p.waterfall), p.waterfall_duration)
-    nt = fluid(p.timing_scene)
-    total += (p.timing_warmup + p.timing_steps) * nt * (mps + (sims - 1) * learned) + 2 * sims
-    n4, s4 = fluid(p.table4_scene), round(p.table4_duration / dt)
-    total += len(p.table4_materials) * (s4 * n4 * mps + row(n4, s4, 11, mps))
+    if "table2" in parts:
+        nt = fluid(p.timing_scene)
+        total += (p.timing_warmup + p.timing_steps) * nt * (mps + (sims - 1) * learned) + 2 * sims
+    if "table4" in parts:
+        n4, s4 = fluid(p.table4_scene), round(p.table4_duration / dt)
+        total += len(p.table4_materials) * (s4 * n4 * mps + row(n4, s4, 11, mps))
     return total
 
 
@@ -1482,8 +1494,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         )
         return 2
     print(f"[tables] {profile.name} profile: {profile.description}", flush=True)
-    est = estimate_seconds(profile)
-    print(f"[tables] expected runtime ~{est / 60:.0f} min on the project's 2-core CPU machine", flush=True)
+    est = estimate_seconds(profile, args.only or PARTS)
+    what = f"of {' '.join(args.only)} " if args.only else ""
+    print(
+        f"[tables] expected runtime {what}~{est / 60:.0f} min on the project's 2-core CPU machine", flush=True
+    )
     written = run_all(profile, args)
     return 1 if written["failed"] else 0
 

@@ -244,3 +244,15 @@ def test_an_only_run_without_an_earlier_full_run_is_refused(tmp_path):
     report = Report(tmp_path / "tables", {"date": "d", "script_commit": "c"})
     with pytest.raises(ConfigError, match=r"tables_parts\.json is missing"):
         merge_parts(report, partial=True, commands={})
+
+
+def test_runtime_estimate_counts_only_the_parts_asked_for():
+    from benchmarks.tables import FULL, PARTS, estimate_seconds
+
+    full = estimate_seconds(FULL)
+    alone = {part: estimate_seconds(FULL, [part]) for part in PARTS}
+    assert all(0 < t < full for t in alone.values()), alone
+    # the dam rows are shared by every part but Table 2: counted once in the full run, in each part alone
+    assert full < sum(alone.values())
+    assert estimate_seconds(FULL, ["table3", "table4"]) < alone["table3"] + alone["table4"]
+    assert alone["table2"] < alone["table4"]  # Table 2 is ten timed steps, no 1 s dam
