@@ -32,6 +32,23 @@ from lagfluid.state import ParticleType
 log = logging.getLogger(__name__)
 
 
+def take_edges(edge_index: Tensor, index: Tensor, out: Tensor | None = None) -> Tensor:
+    """``edge_index[:, index]``: the (2, K) columns ``index`` (K,) of a (2, E) edge index.
+
+    One 1-D gather per row, optionally into ``out`` (2, K) (a column slice of a larger edge index): on the
+    CPU ``index_select`` along dim 1 of a (2, E) tensor takes ~2x as long (1.2 M of 2.4 M edges, two
+    threads: 8.1 ms against 3.4 ms into ``out``).
+    """
+    if out is None:
+        out = edge_index.new_empty((2, index.numel()))
+    for row in range(2):
+        if out[row].is_contiguous():
+            torch.index_select(edge_index[row], 0, index, out=out[row])
+        else:
+            out[row].copy_(edge_index[row].index_select(0, index))
+    return out
+
+
 @dataclass
 class Graph:
     """Edges within one radius at one set of positions.
@@ -63,7 +80,7 @@ class Graph:
     def _take(self, index: Tensor, radius: float) -> Graph:
         # nonzero + index_select rather than boolean indexing: ~2x faster on the CPU for (E, 3) arrays.
         return Graph(
-            self.edge_index.index_select(1, index),
+            take_edges(self.edge_index, index),
             self.rel.index_select(0, index),
             self.dist.index_select(0, index),
             radius,
@@ -200,14 +217,11 @@ class VerletNeighborList:
         rel, dist = edge_vectors(pos, into_fluid)
         # nonzero + index_select rather than boolean indexing: ~2x faster on the CPU for (E, 3) arrays.
         keep = torch.nonzero(dist < radius).flatten()
-        edge_index, rel, dist = (
-            into_fluid.index_select(1, keep),
-            rel.index_select(0, keep),
-            dist.index_select(0, keep),
-        )
         walls = self._static
         if fluid_targets_only or walls is None or walls.num_candidates == 0:
-            return Graph(edge_index, rel, dist, radius)
+            return Graph(
+                take_edges(into_fluid, keep), rel.index_select(0, keep), dist.index_select(0, keep), radius
+            )
         # Wall rows: only the pairs with a fluid source move; the boundary-boundary pairs (most of them)
         # keep the distances computed at the last build.
         w_rel, w_dist, from_fluid = walls.geometry(pos)
@@ -221,14 +235,23 @@ class VerletNeighborList:
             for _ in range(self.wall_hops - 1):
                 active[walls.hop_dst[active.index_select(0, walls.hop_src)]] = True
             within &= active.index_select(0, walls.candidates[1])
-        keep = torch.nonzero(within).flatten()
-        # Wall targets come after every fluid target: concatenating keeps the edges sorted by target.
-        return Graph(
-            torch.cat([edge_index, walls.candidates.index_select(1, keep)], dim=1),
-            torch.cat([rel, w_rel.index_select(0, keep)]),
-            torch.cat([dist, w_dist.index_select(0, keep)]),
-            radius,
+        w_keep = torch.nonzero(within).flatten()
+        # Wall targets come after every fluid target, so fluid rows then wall rows stay sorted by target.
+        # Gathered straight into the two halves of one output rather than gathered then concatenated:
+        # the concatenation was a fifth of this method (dam_medium, 1.8 M edges: 16 of 77 ms).
+        k, e = keep.numel(), keep.numel() + w_keep.numel()
+        edge_index, out_rel, out_dist = (
+            into_fluid.new_empty((2, e)),
+            rel.new_empty((e, rel.shape[1])),
+            dist.new_empty(e),
         )
+        take_edges(into_fluid, keep, out=edge_index[:, :k])
+        take_edges(walls.candidates, w_keep, out=edge_index[:, k:])
+        torch.index_select(rel, 0, keep, out=out_rel[:k])
+        torch.index_select(w_rel, 0, w_keep, out=out_rel[k:])
+        torch.index_select(dist, 0, keep, out=out_dist[:k])
+        torch.index_select(w_dist, 0, w_keep, out=out_dist[k:])
+        return Graph(edge_index, out_rel, out_dist, radius)
 
 
 @dataclass
@@ -270,9 +293,9 @@ class _WallRows:
         rel, dist = edge_vectors(pos, candidates)
         from_fluid = candidates[0] < n_fluid
         dyn = torch.nonzero(from_fluid).flatten()
-        dyn_edges = candidates.index_select(1, dyn)
+        dyn_edges = take_edges(candidates, dyn)
         hop = torch.nonzero(~from_fluid & (dist < cutoff)).flatten()
-        hop_pairs = candidates.index_select(1, hop)
+        hop_pairs = take_edges(candidates, hop)
         return cls(
             candidates,
             rel,

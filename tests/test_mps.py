@@ -78,6 +78,23 @@ def test_verlet_list_is_exact_at_moved_positions():
     assert nl.builds >= 2
 
 
+def test_take_edges_equals_column_indexing_also_into_a_slice():
+    from lagfluid.neighbor_list import take_edges
+
+    gen = torch.Generator().manual_seed(3)
+    edge_index = torch.randint(0, 50, (2, 40), generator=gen)
+    index = torch.tensor([0, 3, 3, 17, 39])
+    assert torch.equal(take_edges(edge_index, index), edge_index[:, index])
+    out = torch.full((2, 8), -1, dtype=torch.long)
+    take_edges(edge_index, index, out=out[:, 2:7])  # rows of a column slice are contiguous
+    assert torch.equal(out[:, 2:7], edge_index[:, index])
+    assert bool((out[:, :2] == -1).all() and (out[:, 7:] == -1).all())  # nothing else written
+    strided = torch.full((5, 2), -1, dtype=torch.long).t()  # rows not contiguous: the copy path
+    assert not strided[0].is_contiguous()
+    take_edges(edge_index, index, out=strided)
+    assert torch.equal(strided, edge_index[:, index])
+
+
 def test_resting_fluid_in_a_tank_stays_at_rest_and_incompressible():
     cfg = OmegaConf.create({"solver": SOLVER})
     sim = build_mps(cfg)
