@@ -334,15 +334,22 @@ def test_manufactured_hydrostatic_solution(big_tank, method):
     torch.testing.assert_close(p, p_star, rtol=1e-7, atol=1e-6 * float(p_star.max()))
 
 
-def test_scipy_and_torch_agree_and_auto_picks_cpu_path(big_tank):
+def test_scipy_and_torch_agree_and_auto_picks_by_device_and_threads(big_tank):
     system = assemble(big_tank)
     rng = np.random.default_rng(1)
     b = torch.from_numpy(rng.normal(size=system.num_unknowns))
     p_sc, i_sc = solve_ppe(system, b, tol=1e-9, method="scipy_cg")
     p_to, i_to = solve_ppe(system, b, tol=1e-9, method="torch_cg")
-    p_au, i_au = solve_ppe(system, b, tol=1e-9)
+    threads = torch.get_num_threads()
+    try:  # auto on the CPU: SciPy's single-threaded SpMV on one thread, torch's with more
+        torch.set_num_threads(1)
+        p_au, i_au = solve_ppe(system, b, tol=1e-9)
+        assert i_au.method == "scipy_cg"
+        torch.set_num_threads(2)
+        assert solve_ppe(system, b, tol=1e-9)[1].method == "torch_cg"
+    finally:
+        torch.set_num_threads(threads)
     assert i_sc.converged and i_to.converged
-    assert i_au.method == ppe._CPU_DEFAULT
     assert abs(i_sc.iterations - i_to.iterations) <= 1  # same algorithm, same preconditioner
     scale = float(p_sc.abs().max())
     torch.testing.assert_close(p_to, p_sc, rtol=0, atol=1e-7 * scale)

@@ -72,9 +72,21 @@ uniform) but costs nothing and helps on the non-uniform rows (walls, surface, do
 rows). Smoothed aggregation needs 7 iterations instead of 56-85, but the matrix changes every
 step, so its setup is paid every step, and one V-cycle costs several SpMVs: it is 1.4-2.7x
 slower at these sizes (the gap narrows with K, so it may win above ~10^5 unknowns). Hence the
-CPU default is SciPy CG + Jacobi; PyAMG stays an opt-in method (optional dependency, falls back
-to ``scipy_cg`` with a warning when missing). The torch CG on the CPU only wins at large K with
-several threads; it exists for CUDA, where SpMV on the CSR matrix is the fast path.
+PyAMG stays an opt-in method (optional dependency, falls back to ``scipy_cg`` with a warning when
+missing).
+
+``auto`` picks the torch CG on CUDA (SpMV on the CSR matrix is the fast path there) and on a CPU with
+two or more torch threads, SciPy's CG on one thread (SciPy's SpMV is single-threaded). Measured in
+the solver itself (``python -m benchmarks.mps_speed --override solver.ppe.method=...``, 2026-12-01,
+PPE solve ms per step, same iteration counts; alternated runs)::
+
+                              dam_medium (10k fluid)    dam_large (40k fluid)
+    scipy_cg, 2 threads             63, 63                    392
+    torch_cg, 2 threads             44, 43                    221
+    scipy_cg, 1 thread              64, 63
+    torch_cg, 1 thread              65, 63
+
+(The throwaway measurements above, from an earlier torch CG, had the CPU crossover at ~20k unknowns.)
 """
 
 from __future__ import annotations
@@ -590,9 +602,9 @@ def solve_ppe(
         maxiter: maximum number of CG iterations (the authors: 200).
         method: ``"scipy_cg"`` (SciPy CG, Jacobi preconditioner), ``"pyamg"`` (SciPy CG with a
             PyAMG smoothed-aggregation V-cycle preconditioner; optional dependency), ``"torch_cg"``
-            (Jacobi-preconditioned CG in torch on the sparse CSR matrix: the CUDA path), ``"auto"``
-            (``torch_cg`` for tensors on an accelerator, ``scipy_cg`` on the CPU: see the module
-            docstring for the measurements).
+            (Jacobi-preconditioned CG in torch on the sparse CSR matrix), ``"auto"`` (``torch_cg``
+            for tensors on an accelerator or on a CPU with >= 2 torch threads, else ``scipy_cg``: see
+            the module docstring for the measurements).
         tol_mode: ``"abs"``: stop when ``||b - A p|| <= tol`` (the authors' choice, with tol=1e-6 and
             b in 1/s^2); ``"rel"``: when ``||b - A p|| <= tol * ||b||``.
         compute_dtype: dtype the torch iteration runs in. Default float64: the PPE's condition
@@ -693,13 +705,10 @@ def _resolve_method(method: str, matrix: Tensor | sp.spmatrix, b: Tensor | np.nd
             raise ValueError(f"A is on {matrix.device} but b is on {b.device}")
     if method != "auto":
         return method
-    on_accelerator = isinstance(matrix, Tensor) and matrix.device.type != "cpu"
-    if on_accelerator and isinstance(b, Tensor) and b.device == matrix.device:
-        return "torch_cg"
-    return _CPU_DEFAULT
-
-
-_CPU_DEFAULT = "scipy_cg"
+    if isinstance(matrix, Tensor) and isinstance(b, Tensor) and b.device == matrix.device:
+        if matrix.device.type != "cpu" or torch.get_num_threads() > 1:
+            return "torch_cg"
+    return "scipy_cg"
 
 
 def _as_scipy(A: PPESystem | Tensor | sp.spmatrix) -> sp.csr_matrix:
