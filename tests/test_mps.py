@@ -262,6 +262,18 @@ def test_cached_wall_rows_equal_recomputing_every_candidate():
     assert nl.builds < 6
 
 
+def test_verlet_graph_with_wall_targets_is_differentiable_in_the_positions():
+    state = build_scene("dam", fluid_size=[6, 6, 8], tank_size=[15, 8])
+    nl = VerletNeighborList(3.1 * 0.05, 0.3 * 0.05)
+    plain = nl.graph(state.pos, state.ptype, 3.1 * 0.05)
+    pos = state.pos.clone().requires_grad_(True)
+    g = nl.graph(pos, state.ptype, 3.1 * 0.05)
+    assert torch.equal(g.edge_index, plain.edge_index) and torch.equal(g.dist.detach(), plain.dist)
+    g.dist.sum().backward()
+    assert pos.grad is not None and bool(torch.isfinite(pos.grad).all())
+    assert float(pos.grad[: state.n_fluid].abs().sum()) > 0
+
+
 def test_moved_boundary_invalidates_the_cached_wall_rows():
     state = build_scene("dam", fluid_size=[6, 6, 8], tank_size=[15, 8])
     nl = VerletNeighborList(3.1 * 0.05, 0.3 * 0.05)

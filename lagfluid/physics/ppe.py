@@ -71,7 +71,7 @@ Reading: Jacobi barely changes the iteration count on a lattice (the diagonal is
 uniform) but costs nothing and helps on the non-uniform rows (walls, surface, doubled isolated
 rows). Smoothed aggregation needs 7 iterations instead of 56-85, but the matrix changes every
 step, so its setup is paid every step, and one V-cycle costs several SpMVs: it is 1.4-2.7x
-slower at these sizes (the gap narrows with K, so it may win above ~10^5 unknowns). Hence the
+slower at these sizes (the gap narrows with K, so it may win above ~10^5 unknowns). Hence
 PyAMG stays an opt-in method (optional dependency, falls back to ``scipy_cg`` with a warning when
 missing).
 
