@@ -300,3 +300,14 @@ def test_fluid_target_graph_sliced_from_the_cached_full_graph():
     ref = radius_graph(pos, 2.1 * 0.05, receivers=state.fluid_mask, backend="brute")
     assert torch.equal(fluid.edge_index, ref)
     assert torch.equal(fluid.dist, full.dist[: ref.shape[1]])
+
+
+def test_resting_variants_diagnostic_prints_a_row_per_variant(capsys):
+    from benchmarks.resting_variants import VARIANTS, main
+
+    main(["--steps", "2"])
+    rows = [line for line in capsys.readouterr().out.splitlines() if line.startswith("| ")]
+    assert len(rows) == 2 + len(VARIANTS)  # header, rule, one row each
+    default = next(r for r in rows if r.startswith("| default"))
+    mean_speed = float(default.split("|")[2])
+    assert 0 <= mean_speed < 0.05  # two steps from rest: the column has barely moved
