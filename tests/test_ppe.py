@@ -525,3 +525,44 @@ def test_pcg_jacobi_matches_scipy_cg(big_tank):
         assert abs(n - len(iters)) <= 1
         assert np.linalg.norm(b - a @ x) <= 1e-9
         np.testing.assert_allclose(x, ref, rtol=0, atol=1e-8 * np.abs(ref).max())
+
+
+def _csr_arrays(system):
+    m = system.matrix
+    return m.crow_indices(), m.col_indices(), m.values(), system.isolated, system.index
+
+
+@pytest.mark.skipif(not ppe._compiled_assembly_applies(torch.zeros(1)), reason="numba not installed")
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("case", ["tank", "blob", "enclosed", "empty_row", "zero_weights"])
+def test_compiled_assembly_equals_the_torch_assembly(monkeypatch, caplog, dtype, case):
+    # The solver's CPU assembly (check=False: compiled row passes and a breadth-first search) must give
+    # the very arrays of the torch assembly, the remedies for isolated components and empty rows included.
+    scene = make_tank(3, 3, 4, blob=case == "blob")
+    edge_index, coef = scene.edge_index, torch.tensor(scene.coef, dtype=dtype)
+    solve, dirichlet = torch.from_numpy(scene.solve), torch.from_numpy(scene.dirichlet)
+    if case == "enclosed":  # no free surface: the whole tank is one isolated component
+        solve, dirichlet = torch.from_numpy(scene.ptype != 3), torch.zeros_like(dirichlet)
+    if case == "empty_row":  # a solved particle whose every neighbour is a dummy
+        lonely = int(np.flatnonzero(scene.solve)[0])
+        others = edge_index[1] == lonely
+        solve = solve.clone()
+        dirichlet = dirichlet.clone()
+        neighbours = edge_index[0][others]
+        solve[neighbours], dirichlet[neighbours] = False, False
+    if case == "zero_weights":  # pairs exactly at re couple nothing
+        coef = coef.clone()
+        coef[::7] = 0.0
+        coef[edge_index[1] == edge_index[0][::7][0]] = 0.0
+    caplog.set_level(logging.WARNING, logger="lagfluid.physics.ppe")
+    compiled = assemble_ppe(edge_index, coef, solve, RHO, dirichlet_mask=dirichlet, check=False)
+    monkeypatch.setattr(ppe, "_compiled_assembly_applies", lambda coef: False)
+    reference = assemble_ppe(edge_index, coef, solve, RHO, dirichlet_mask=dirichlet, check=False)
+    for got, want in zip(_csr_arrays(compiled), _csr_arrays(reference), strict=True):
+        assert got.dtype == want.dtype and torch.equal(got, want)
+    assert compiled.n_isolated_components == reference.n_isolated_components
+    # (the lonely particle is a component of its own without a free-surface neighbour)
+    expected_components = {"blob": 1, "enclosed": 1, "empty_row": 1}.get(case, 0)
+    assert compiled.n_isolated_components == expected_components
+    if case == "empty_row":
+        assert any("no fluid/wall/free-surface neighbour" in r.getMessage() for r in caplog.records)

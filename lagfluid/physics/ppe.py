@@ -91,9 +91,12 @@ PPE solve ms per step, same iteration counts; alternated runs)::
 
 from __future__ import annotations
 
+import functools
+import importlib
 import logging
 import math
 from dataclasses import dataclass
+from types import ModuleType
 from typing import Literal
 
 import numpy as np
@@ -256,6 +259,10 @@ def assemble_ppe(
     solve_mask = solve_mask.to(device)
     dirichlet_mask = dirichlet_mask.to(device)
     edge_index = edge_index.to(device)
+    if not check and components == "auto" and _compiled_assembly_applies(coef):
+        return _assemble_compiled(
+            edge_index, coef, solve_mask, dirichlet_mask, density, isolated_diagonal_factor
+        )
 
     index = torch.nonzero(solve_mask).flatten()
     k = int(index.numel())
@@ -300,6 +307,20 @@ def assemble_ppe(
     # Isolated components: no Dirichlet neighbour anywhere in the component -> singular block. (The
     # pattern without the diagonal has the same components.)
     isolated, n_iso = _isolated_rows(crow_off, cols, coupled, k, components)
+    diag = _final_diagonal(diag, isolated, n_iso, density, isolated_diagonal_factor)
+    idt = _index_dtype(int(rows.numel()) + k)
+    if device.type == "cpu" and not (off.requires_grad or diag.requires_grad):
+        matrix = _csr_plus_diagonal_scipy(crow_off, cols, off, diag, k, idt)
+    else:
+        crow, col, val, _ = _csr_with_diagonal(rows, cols, off, diag, k)
+        matrix = torch.sparse_csr_tensor(crow.to(idt), col.to(idt), val, (k, k), check_invariants=False)
+    return PPESystem(
+        matrix=matrix, index=index, isolated=isolated, num_particles=n, n_isolated_components=n_iso
+    )
+
+
+def _final_diagonal(diag: Tensor, isolated: Tensor, n_iso: int, density: float, factor: float) -> Tensor:
+    """The diagonal (K,) after the remedies for isolated components and empty rows."""
     # A solved particle with no non-dummy neighbour has an all-zero row; give it a typical diagonal
     # (p_i = b_i / A_ii, as if it had a full neighbourhood at p = 0) rather than a singular matrix.
     empty = diag <= 0
@@ -309,7 +330,7 @@ def assemble_ppe(
         positive = diag[~empty]
         fill = float(positive.median()) if positive.numel() else 1.0 / float(density)
     if n_iso:
-        diag = torch.where(isolated, diag * isolated_diagonal_factor, diag)
+        diag = torch.where(isolated, diag * factor, diag)
         logger.debug(
             "PPE: %d rows in %d components without a free-surface neighbour", int(isolated.sum()), n_iso
         )
@@ -320,14 +341,83 @@ def assemble_ppe(
             int(empty.sum()),
             fill,
         )
-    idt = _index_dtype(int(rows.numel()) + k)
-    if device.type == "cpu" and not (off.requires_grad or diag.requires_grad):
-        matrix = _csr_plus_diagonal_scipy(crow_off, cols, off, diag, k, idt)
-    else:
-        crow, col, val, _ = _csr_with_diagonal(rows, cols, off, diag, k)
-        matrix = torch.sparse_csr_tensor(crow.to(idt), col.to(idt), val, (k, k), check_invariants=False)
+    return diag
+
+
+def _compiled_assembly_applies(coef: Tensor) -> bool:
+    """The compiled CPU assembly serves CPU coefficients that need no gradient, when Numba is present."""
+    from lagfluid import pair_kernels
+
+    return pair_kernels.applies(coef) and _ppe_kernels() is not None
+
+
+@functools.cache
+def _ppe_kernels() -> ModuleType | None:
+    try:
+        return importlib.import_module("lagfluid.physics._ppe_numba")
+    except ImportError:  # numba missing: the torch assembly serves
+        return None
+
+
+def _assemble_compiled(
+    edge_index: Tensor,
+    coef: Tensor,
+    solve_mask: Tensor,
+    dirichlet_mask: Tensor,
+    density: float,
+    factor: float,
+) -> PPESystem:
+    """:func:`assemble_ppe` for trusted CPU input (sorted by target, then source) in compiled passes.
+
+    The same matrix as the torch assembly (``tests/test_ppe.py`` compares them) from one pass per solved
+    row, instead of ~20 torch passes over the edge list plus SciPy's ``connected_components``: at 40k fluid
+    particles (5 M stored entries) 240 ms -> see ``benchmarks/results/mps_speed.md``.
+    """
+    from lagfluid import pair_kernels
+
+    kern = _ppe_kernels()
+    pair_kernels.set_threads()
+    n = int(solve_mask.numel())
+    index = torch.nonzero(solve_mask).flatten()
+    k = int(index.numel())
+    pos_of = torch.full((n,), -1, dtype=torch.long)
+    pos_of.index_copy_(0, index, torch.arange(k))
+    role = (solve_mask.to(torch.int8) * 2 + dirichlet_mask.to(torch.int8)).numpy()
+    dst = edge_index[1].contiguous().numpy()
+    idx = index.numpy()
+    edge_start = np.searchsorted(dst, idx, side="left")  # edges are sorted by target
+    edge_stop = np.searchsorted(dst, idx, side="right")
+    src, c = edge_index[0].contiguous().numpy(), coef.detach().contiguous().numpy()
+    inv_rho = c.dtype.type(1.0 / float(density))  # as torch multiplies a float32 tensor by a Python float
+    diag = np.empty(k, dtype=c.dtype)
+    coupled = np.empty(k, dtype=np.bool_)
+    counts = np.zeros(k + 1, dtype=np.int64)
+    kern.count_rows(src, c, role, edge_start, edge_stop, inv_rho, diag, coupled, counts)
+    crow = np.cumsum(counts)
+    nnz = int(crow[-1])
+    np_idx = np.int32 if _index_dtype(nnz) == torch.int32 else np.int64
+    col = np.empty(nnz, dtype=np_idx)
+    val = np.empty(nnz, dtype=c.dtype)
+    diag_at = np.empty(k, dtype=np.int64)
+    kern.fill_rows(src, c, role, pos_of.numpy(), edge_start, edge_stop, inv_rho, crow, col, val, diag_at)
+    reached = kern.reached_from(crow, col, coupled)
+    isolated = ~reached
+    n_iso = int(kern.count_components(crow, col, isolated)) if isolated.any() else 0
+    diag_t = _final_diagonal(torch.from_numpy(diag), torch.from_numpy(isolated), n_iso, density, factor)
+    val[diag_at] = diag_t.numpy()
+    matrix = torch.sparse_csr_tensor(
+        torch.from_numpy(crow.astype(np_idx)),
+        torch.from_numpy(col),
+        torch.from_numpy(val),
+        (k, k),
+        check_invariants=False,
+    )
     return PPESystem(
-        matrix=matrix, index=index, isolated=isolated, num_particles=n, n_isolated_components=n_iso
+        matrix=matrix,
+        index=index,
+        isolated=torch.from_numpy(isolated),
+        num_particles=n,
+        n_isolated_components=n_iso,
     )
 
 

@@ -31,6 +31,7 @@ from typing import Any, Protocol
 import torch
 from torch import Tensor
 
+from lagfluid import pair_kernels
 from lagfluid.errors import ConfigError
 from lagfluid.neighbor_list import Graph, VerletNeighborList
 from lagfluid.neighbors import edge_vectors
@@ -280,6 +281,8 @@ class StepContext:
                 # where the fluid is now (see lagfluid.neighbor_list), which a smaller graph cannot tell.
                 if fluid_targets_only and radius + 2.0 * moved < full.radius:
                     near = full.into_first(nf).within(radius + 2.0 * moved)
+                    if pair_kernels.applies(pos):
+                        return Graph(*pair_kernels.pairs_within(pos, [near.edge_index], radius), radius)
                     rel, dist = edge_vectors(pos, near.edge_index)
                     # each end moved at most `moved`: the new distances are below near.radius + 2 moved
                     return Graph(near.edge_index, rel, dist, near.radius + 2.0 * moved).within(radius)

@@ -1,0 +1,169 @@
+"""Compiled CPU kernels (Numba) that filter candidate pairs by distance in one pass.
+
+Why our own kernels: the Verlet list (:mod:`lagfluid.neighbor_list`) filters every candidate pair by its
+current distance twice per MPS step, and as torch operations that pass materialises ``pos[src]``,
+``pos[dst]``, ``rel``, ``rel * rel``, the mask and the ``nonzero`` index (each 1-10 M rows) before gathering
+the kept rows again. Measured on ``dam_large`` (40k fluid, 9.7 M candidate pairs into fluid, two threads):
+the torch filter takes ~170 ms per pass, of which the two ``(E, 3)`` gathers alone are 2 x 34 ms; these
+kernels read each candidate once from cache-resident positions and write only the kept pairs (numbers in
+``benchmarks/results/mps_speed.md``). Neither PyG nor SciPy filters an existing pair list.
+
+The results are *bit-identical* to the torch path (:func:`lagfluid.neighbors.edge_vectors` followed by
+``dist < radius``): the same float operations in the same order (``sqrt((x*x + y*y) + z*z)`` in the
+positions' dtype, no fused multiply-add, no fast-math) and the radius rounded to that dtype as torch
+rounds a Python scalar. The kept pairs keep their input order, so target-sorted input stays sorted.
+
+The torch path remains for CUDA tensors, for positions that require grad, and where Numba is not
+installed (:func:`available`).
+"""
+
+from __future__ import annotations
+
+import functools
+import importlib
+import logging
+from collections.abc import Sequence
+from types import ModuleType
+
+import numpy as np
+import torch
+from torch import Tensor
+
+log = logging.getLogger(__name__)
+
+
+@functools.cache
+def _compiled() -> ModuleType | None:
+    """The kernel module, or None when Numba is not importable (kernels compile lazily, cached on disk)."""
+    try:
+        return importlib.import_module("lagfluid._pair_kernels_numba")
+    except ImportError as err:  # numba is a dependency; this keeps an install without it usable
+        log.warning("numba unavailable (%s): candidate pairs are filtered with slower torch operations", err)
+        return None
+
+
+def available() -> bool:
+    """True when the compiled kernels can run (Numba importable)."""
+    return _compiled() is not None
+
+
+def applies(*tensors: Tensor) -> bool:
+    """True when the kernels should serve these tensors: Numba present, all on the CPU, none needing grad."""
+    return (
+        all(t.device.type == "cpu" and not (t.requires_grad and torch.is_grad_enabled()) for t in tensors)
+        and available()
+    )
+
+
+def set_threads() -> None:
+    """Give Numba's parallel loops as many threads as torch (``torch.set_num_threads`` is the one knob)."""
+    import numba
+
+    numba.set_num_threads(max(1, min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS)))
+
+
+def _kernels() -> ModuleType:
+    """The kernel module, with as many threads as torch."""
+    kernels = _compiled()
+    if kernels is None:
+        raise RuntimeError("the compiled pair kernels need numba: pip install numba")
+    set_threads()
+    return kernels
+
+
+def _as_numpy(t: Tensor) -> np.ndarray:
+    return t.detach().contiguous().numpy()
+
+
+def pairs_within(
+    pos: Tensor,
+    edge_lists: Sequence[Tensor],
+    radius: float,
+    target_masks: Sequence[Tensor | None] | None = None,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """The candidate pairs closer than ``radius``, with their geometry, in input order.
+
+    Equal, bit for bit, to ``rel, dist = edge_vectors(pos, edge_index)`` followed by keeping
+    ``dist < radius`` (and ``target_mask[edge_index[1]]`` where a mask is given), for each candidate list
+    in turn, the results concatenated (written in place: no concatenation pass).
+
+    Args:
+        pos: (N, D) CPU positions, float32 or float64.
+        edge_lists: candidate lists, each (2, E_k) int64, row 0 = source ``j``, row 1 = target ``i``.
+        radius: metres.
+        target_masks: per list, None or an (N,) bool mask; pairs into targets where it is False are dropped.
+
+    Returns:
+        edge_index: (2, K) the kept pairs; rel: (K, D) ``pos[j] - pos[i]``; dist: (K,) ``|rel|``.
+    """
+    kern = _kernels()
+    p = _as_numpy(pos)
+    bound2 = p.dtype.type(_squared_bound(float(radius), pos.dtype))
+    masks = list(target_masks) if target_masks is not None else [None] * len(edge_lists)
+    parts, total = [], 0
+    for edges, target_mask in zip(edge_lists, masks, strict=True):
+        src, dst = _as_numpy(edges[0]), _as_numpy(edges[1])
+        use_mask = target_mask is not None
+        mask = _as_numpy(target_mask) if use_mask else np.ones(1, dtype=np.bool_)
+        offsets = kern.count_within(p, src, dst, bound2, mask, use_mask)
+        parts.append((src, dst, mask, use_mask, offsets, total))
+        total += int(offsets[-1])
+    out = np.empty((2, total), dtype=np.int64)
+    rel = np.empty((total, p.shape[1]), dtype=p.dtype)
+    dist = np.empty(total, dtype=p.dtype)
+    for src, dst, mask, use_mask, offsets, start in parts:
+        stop = start + int(offsets[-1])
+        kern.fill_within(
+            p, src, dst, bound2, mask, use_mask, offsets,
+            out[0, start:stop], out[1, start:stop], rel[start:stop], dist[start:stop],
+        )  # fmt: skip
+    # the kernels keep squared distances; the square root is torch's (see _squared_bound)
+    return torch.from_numpy(out), torch.from_numpy(rel), torch.from_numpy(dist).sqrt_()
+
+
+@functools.lru_cache(maxsize=256)
+def _squared_bound(radius: float, dtype: torch.dtype) -> float:
+    """The squared distance ``b`` with ``d2 < b``  <=>  ``torch.sqrt(d2) < radius`` for every ``d2`` in dtype.
+
+    Why: torch's vectorised CPU ``sqrt`` is not always correctly rounded (AVX-512 build: 0.7 % of float32
+    values differ from IEEE ``sqrt`` in the last bit), yet the cut must be torch's ``sqrt(d2) < radius``
+    to the bit, as in every other search. So the kernels compare squared distances with the exact
+    threshold, found here by asking torch about every ``d2`` within 64 ulp of ``radius^2`` (beyond that no
+    sqrt is wrong by enough to cross ``radius``); the kept ``d2`` then get torch's ``sqrt``.
+
+    Raises:
+        RuntimeError: torch's sqrt is not monotonic there (never seen; the caller cannot be exact then).
+    """
+    int_type = {torch.float32: torch.int32, torch.float64: torch.int64}[dtype]
+    r = torch.tensor(radius, dtype=dtype)
+    steps = torch.arange(-64, 65, dtype=int_type)
+    window = ((r * r).view(int_type) + steps).view(dtype)  # consecutive floats around r^2 (all positive)
+    inside = torch.sqrt(window) < radius
+    first_out = int(torch.argmin(inside.to(torch.uint8)))
+    if not (inside[0] and not inside[-1] and bool(inside[:first_out].all()) and not inside[first_out:].any()):
+        raise RuntimeError(f"torch.sqrt is not monotonic near radius {radius} ({dtype}): cannot cut exactly")
+    return float(window[first_out])
+
+
+def select_below(
+    edge_index: Tensor, rel: Tensor, dist: Tensor, radius: float
+) -> tuple[Tensor, Tensor, Tensor]:
+    """The edges of a graph with ``dist < radius`` (order kept): ``(edge_index, rel, dist)`` restricted.
+
+    Args:
+        edge_index: (2, E) int64 on the CPU.
+        rel: (E, D) edge vectors.
+        dist: (E,) edge lengths.
+        radius: metres.
+    """
+    kern = _kernels()
+    d = _as_numpy(dist)
+    bound = d.dtype.type(radius)
+    offsets = kern.count_below(d, bound)
+    kept = int(offsets[-1])
+    out = np.empty((2, kept), dtype=np.int64)
+    out_rel = np.empty((kept, rel.shape[1]), dtype=d.dtype)
+    out_dist = np.empty(kept, dtype=d.dtype)
+    src, dst = _as_numpy(edge_index[0]), _as_numpy(edge_index[1])
+    kern.fill_below(d, bound, offsets, src, dst, _as_numpy(rel), out[0], out[1], out_rel, out_dist)
+    return torch.from_numpy(out), torch.from_numpy(out_rel), torch.from_numpy(out_dist)

@@ -1,0 +1,141 @@
+"""The compiled pair filters equal the torch path bit for bit; the Verlet list answers the same either way."""
+
+import pytest
+import torch
+
+from lagfluid import pair_kernels
+from lagfluid.neighbor_list import VerletNeighborList
+from lagfluid.neighbors import edge_vectors
+from lagfluid.scenes import build_scene
+
+pytestmark = pytest.mark.skipif(not pair_kernels.available(), reason="numba not installed")
+
+
+def torch_filter(pos, edge_index, radius, target_mask=None):
+    rel, dist = edge_vectors(pos, edge_index)
+    keep = dist < radius
+    if target_mask is not None:
+        keep &= target_mask[edge_index[1]]
+    return edge_index[:, keep], rel[keep], dist[keep]
+
+
+def assert_identical(got, want):
+    for g, w in zip(got, want, strict=True):
+        assert g.dtype == w.dtype and g.shape == w.shape
+        assert torch.equal(g, w)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("dim", [3, 2])
+def test_pairs_within_equals_edge_vectors_then_cut(dtype, dim):
+    gen = torch.Generator().manual_seed(0)
+    pos = torch.rand(3000, dim, generator=gen, dtype=dtype)
+    edges = torch.randint(0, 3000, (2, 200_000), generator=gen)
+    edges = edges[:, torch.argsort(edges[1], stable=True)]
+    got = pair_kernels.pairs_within(pos, [edges], 0.2)
+    assert_identical(got, torch_filter(pos, edges, 0.2))
+    assert bool((got[0][1][1:] >= got[0][1][:-1]).all())  # input order kept: still sorted by target
+    assert 0 < got[0].shape[1] < edges.shape[1]
+
+
+def test_pairs_within_concatenates_lists_and_applies_target_masks():
+    gen = torch.Generator().manual_seed(1)
+    pos = torch.rand(500, 3, generator=gen)
+    a, b = torch.randint(0, 500, (2, 20_000), generator=gen), torch.randint(0, 500, (2, 9_000), generator=gen)
+    mask = torch.rand(500, generator=gen) < 0.3
+    got = pair_kernels.pairs_within(pos, [a, b], 0.3, [None, mask])
+    want_a, want_b = torch_filter(pos, a, 0.3), torch_filter(pos, b, 0.3, mask)
+    want = (
+        torch.cat([want_a[0], want_b[0]], dim=1),
+        torch.cat([want_a[1], want_b[1]]),
+        torch.cat([want_a[2], want_b[2]]),
+    )
+    assert_identical(got, want)
+    assert bool(mask[got[0][1][want_a[0].shape[1] :]].all())
+
+
+def test_pairs_within_handles_empty_lists_and_nothing_in_range():
+    pos = torch.rand(10, 3)
+    empty = torch.zeros((2, 0), dtype=torch.long)
+    edges, rel, dist = pair_kernels.pairs_within(pos, [empty], 0.5)
+    assert edges.shape == (2, 0) and rel.shape == (0, 3) and dist.shape == (0,)
+    far = torch.tensor([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
+    edges, _, _ = pair_kernels.pairs_within(far, [torch.tensor([[0, 1], [1, 0]])], 0.5)
+    assert edges.shape == (2, 0)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_the_cut_at_the_radius_is_torchs_to_the_last_bit(dtype):
+    # Pairs at every representable distance within 40 ulp of the radius, both ways along x: the kernels
+    # must keep exactly the pairs that torch's sqrt puts below the radius (they cut squared distances).
+    radius = 3.1 * 0.0123
+    r = torch.tensor(radius, dtype=dtype)
+    int_type = torch.int32 if dtype == torch.float32 else torch.int64
+    offsets = (r.view(int_type) + torch.arange(-40, 41, dtype=int_type)).view(dtype)
+    pos = torch.zeros(1 + offsets.numel(), 3, dtype=dtype)
+    pos[1:, 0] = offsets
+    others = torch.arange(1, pos.shape[0])
+    edges = torch.stack([others, torch.zeros_like(others)])
+    edges = torch.cat([edges, edges.flip(0)], dim=1)
+    got = pair_kernels.pairs_within(pos, [edges], radius)
+    want = torch_filter(pos, edges, radius)
+    assert_identical(got, want)
+    assert 0 < got[0].shape[1] < edges.shape[1]  # the cut falls inside the window
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("radius", [0.92 * 0.05, 2.1 * 0.05, 3.1 * 0.0217, 1.0, 7.3e-4])
+def test_squared_bound_reproduces_torchs_sqrt_comparison(dtype, radius):
+    bound = pair_kernels._squared_bound(radius, dtype)
+    int_type = torch.int32 if dtype == torch.float32 else torch.int64
+    d2 = (torch.tensor(bound, dtype=dtype).view(int_type) + torch.arange(-300, 301, dtype=int_type)).view(
+        dtype
+    )
+    assert torch.equal(d2 < bound, torch.sqrt(d2) < radius)
+
+
+def test_select_below_equals_boolean_selection():
+    gen = torch.Generator().manual_seed(2)
+    pos = torch.rand(400, 3, generator=gen)
+    edges = torch.randint(0, 400, (2, 30_000), generator=gen)
+    edges, rel, dist = pair_kernels.pairs_within(pos, [edges], 0.4)
+    got = pair_kernels.select_below(edges, rel, dist, 0.25)
+    keep = dist < 0.25
+    assert_identical(got, (edges[:, keep], rel[keep], dist[keep]))
+
+
+def test_applies_only_where_the_kernels_are_exact_and_available(monkeypatch):
+    pos = torch.rand(5, 3)
+    assert pair_kernels.applies(pos)
+    assert not pair_kernels.applies(pos.clone().requires_grad_(True))
+    with torch.no_grad():
+        assert pair_kernels.applies(pos.clone().requires_grad_(True))
+    monkeypatch.setattr(pair_kernels, "_compiled", lambda: None)
+    assert not pair_kernels.applies(pos)
+
+
+@pytest.mark.parametrize("wall_hops", [2, None])
+def test_verlet_list_gives_the_same_graphs_with_and_without_the_kernels(monkeypatch, wall_hops):
+    state = build_scene("dam", fluid_size=[6, 6, 8], tank_size=[15, 8])
+    compiled = VerletNeighborList(3.1 * 0.05, 0.3 * 0.05, wall_hops=wall_hops)
+    plain = VerletNeighborList(3.1 * 0.05, 0.3 * 0.05, wall_hops=wall_hops)
+    gen = torch.Generator().manual_seed(4)
+    pos = state.pos.clone()
+    real_applies = pair_kernels.applies
+    for _ in range(4):  # moves beyond skin/2 now and then: rebuilds in between
+        pos[: state.n_fluid] += 0.005 * torch.randn(state.n_fluid, 3, generator=gen, dtype=pos.dtype)
+        for radius in (3.1 * 0.05, 2.1 * 0.05):
+            for fluid_only in (False, True):
+                monkeypatch.setattr(pair_kernels, "applies", real_applies)
+                got = compiled.graph(pos, state.ptype, radius, fluid_only)
+                monkeypatch.setattr(pair_kernels, "applies", lambda *t: False)
+                want = plain.graph(pos, state.ptype, radius, fluid_only)
+                assert_identical((got.edge_index, got.rel, got.dist), (want.edge_index, want.rel, want.dist))
+                sub_want = want.within(0.92 * 0.05)
+                monkeypatch.setattr(pair_kernels, "applies", real_applies)
+                sub_got = got.within(0.92 * 0.05)
+                assert_identical(
+                    (sub_got.edge_index, sub_got.rel, sub_got.dist),
+                    (sub_want.edge_index, sub_want.rel, sub_want.dist),
+                )
+    assert compiled.builds == plain.builds >= 2
