@@ -430,3 +430,35 @@ def test_kernel_fast_path_equals_the_differentiable_one():
     for d in (dist, dist.float()):
         slow = ops.kernel(d.clone().requires_grad_(True), re).detach()
         assert torch.equal(ops.kernel(d, re), slow)
+
+
+@pytest.mark.skipif(ops._operator_kernels() is None, reason="numba not installed")
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("channels", [None, 3])
+def test_compiled_laplacian_equals_the_torch_operations(monkeypatch, dtype, channels):
+    # The CPU fast path (one compiled pass per target row) gives the torch path's numbers to the bit,
+    # into a prefix of the rows (num_nodes < N) too, and declines graphs not sorted by target.
+    gen = torch.Generator().manual_seed(7)
+    pos = torch.rand(600, 3, generator=gen, dtype=dtype) * 0.4
+    re = 3.1 * L0
+    ei = brute_edges(pos, re)  # sorted by target, then source
+    shape = (600,) if channels is None else (600, channels)
+    values = torch.randn(shape, generator=gen, dtype=dtype)
+    pos_dup = torch.cat([pos, pos[:1] + 1e-9])  # a near-coincident pair (r < 1e-8: weight 0)
+    ei_dup = brute_edges(pos_dup, re)
+    values_dup = torch.cat([values, values[:1]])
+    for p, e, v, rows in (
+        (pos, ei, values, None),
+        (pos, ei[:, ei[1] < 250], values, 250),
+        (pos_dup, ei_dup, values_dup, None),
+    ):
+        fast = ops.laplacian(p, e, v, re, 54.3, 3.24 * L0**2, num_nodes=rows)
+        with monkeypatch.context() as m:
+            m.setattr(ops, "_compiled_laplacian", lambda *a: None)
+            slow = ops.laplacian(p, e, v, re, 54.3, 3.24 * L0**2, num_nodes=rows)
+        assert fast.shape == slow.shape and torch.equal(fast, slow)
+    shuffled = ei[:, torch.randperm(ei.shape[1], generator=gen)]
+    assert (
+        ops._compiled_laplacian(shuffled, ops.edge_geometry(pos, shuffled)[1], values, re, 1.0, 600) is None
+    )
+    assert ops._compiled_laplacian(ei, ops.edge_geometry(pos, ei)[1], values, re, 1.0, 600) is not None
