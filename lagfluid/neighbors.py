@@ -11,7 +11,9 @@ Conventions (shared with PyG, ``flow="source_to_target"``):
   so ``rel = pos[j] - pos[i]`` is ``x_j - x_i``.
 * A pair is an edge when ``|x_j - x_i| < r`` (strict), measured by one formula in the input dtype
   (:func:`_distance`), whichever backend found the candidates. Every backend searches a slightly
-  larger radius and then applies that formula, so all backends return *exactly* the same edges.
+  larger radius and then applies that formula, so all backends return *exactly* the same edges. (The
+  CPU filter of the Verlet list, :mod:`lagfluid.pair_kernels`, reaches the same cut from squared
+  distances at the exact threshold of torch's ``sqrt``.)
 * Edges are sorted by target, then source: ready for CSR, and deterministic, so backends can be
   compared edge for edge.
 * The search never truncates silently: with ``max_num_neighbors`` it raises
