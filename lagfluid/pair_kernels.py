@@ -33,13 +33,22 @@ log = logging.getLogger(__name__)
 
 
 @functools.cache
-def _compiled() -> ModuleType | None:
-    """The kernel module, or None when Numba is not importable (kernels compile lazily, cached on disk)."""
+def load(module: str) -> ModuleType | None:
+    """A module of Numba kernels (imported once), or None when Numba is not importable.
+
+    Numba is a dependency; the None keeps an install without it usable (the torch operations serve).
+    The kernels compile on their first call and are cached on disk.
+    """
     try:
-        return importlib.import_module("lagfluid._pair_kernels_numba")
-    except ImportError as err:  # numba is a dependency; this keeps an install without it usable
-        log.warning("numba unavailable (%s): candidate pairs are filtered with slower torch operations", err)
+        return importlib.import_module(module)
+    except ImportError as err:
+        log.warning("numba unavailable (%s): %s falls back to slower torch operations", err, module)
         return None
+
+
+def _compiled() -> ModuleType | None:
+    """The pair-filter kernels, or None without Numba."""
+    return load("lagfluid._pair_kernels_numba")
 
 
 def available() -> bool:

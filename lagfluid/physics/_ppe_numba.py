@@ -1,9 +1,8 @@
 """Numba kernels behind the CPU assembly of :func:`lagfluid.physics.ppe.assemble_ppe` (imported lazily).
 
 One pass per solved row over its incoming edges (the graph is sorted by target, then source), written
-straight into CSR arrays with the diagonal in place; and a breadth-first search for the rows that reach
-a free-surface neighbour. See ``assemble_ppe`` for the rules; ``tests/test_ppe.py`` checks these kernels
-against the torch assembly.
+straight into CSR arrays with the diagonal in place; and connected-component labels of the pattern. See
+``assemble_ppe`` for the rules; ``tests/test_ppe.py`` checks these kernels against the torch assembly.
 """
 
 import numpy as np
@@ -59,40 +58,21 @@ def fill_rows(src, coef, role, pos_of, edge_start, edge_stop, inv_rho, crow, col
 
 
 @njit(cache=True)
-def reached_from(crow, col, seeds):
-    """(K,) bool: rows connected (through the pattern ``crow``/``col``) to a row where ``seeds`` is True."""
-    k = seeds.shape[0]
-    reached = seeds.copy()
-    stack = np.empty(k, dtype=np.int64)
-    top = 0
-    for r in range(k):
-        if seeds[r]:
-            stack[top] = r
-            top += 1
-    while top > 0:
-        top -= 1
-        r = stack[top]
-        for e in range(crow[r], crow[r + 1]):
-            j = col[e]
-            if not reached[j]:
-                reached[j] = True
-                stack[top] = j
-                top += 1
-    return reached
+def component_labels(crow, col):
+    """(K,) int64 connected-component label of every row of the pattern ``crow``/``col``.
 
-
-@njit(cache=True)
-def count_components(crow, col, members):
-    """Number of connected components among the rows where ``members`` is True (a closed set)."""
-    k = members.shape[0]
-    seen = ~members
+    Labels 0, 1, ... in order of each component's first row, by depth-first search: what SciPy's
+    ``connected_components`` returns for a symmetric pattern, without its conversions (SciPy took
+    ~45 ms per step at 40k fluid particles, 5 M entries).
+    """
+    k = crow.shape[0] - 1
+    labels = np.full(k, -1, dtype=np.int64)
     stack = np.empty(k, dtype=np.int64)
-    components = 0
+    count = 0
     for start in range(k):
-        if seen[start]:
+        if labels[start] >= 0:
             continue
-        components += 1
-        seen[start] = True
+        labels[start] = count
         stack[0] = start
         top = 1
         while top > 0:
@@ -100,8 +80,9 @@ def count_components(crow, col, members):
             r = stack[top]
             for e in range(crow[r], crow[r + 1]):
                 j = col[e]
-                if not seen[j]:
-                    seen[j] = True
+                if labels[j] < 0:
+                    labels[j] = count
                     stack[top] = j
                     top += 1
-    return components
+        count += 1
+    return labels

@@ -18,8 +18,6 @@ The MPS weight (Koshizuka & Oka 1996) is ``w(r) = re / r - 1`` for ``1e-8 < r < 
 
 from __future__ import annotations
 
-import functools
-import importlib
 from types import ModuleType
 
 import numpy as np
@@ -413,12 +411,10 @@ def laplacian(
 
 
 # ------------------------------------------------------------------------------------------ CPU fast paths
-@functools.cache
 def _operator_kernels() -> ModuleType | None:
-    try:
-        return importlib.import_module("lagfluid.physics._operators_numba")
-    except ImportError:  # numba missing: the torch operations serve
-        return None
+    from lagfluid import pair_kernels
+
+    return pair_kernels.load("lagfluid.physics._operators_numba")
 
 
 def _compiled_laplacian(

@@ -91,8 +91,6 @@ PPE solve ms per step, same iteration counts; alternated runs)::
 
 from __future__ import annotations
 
-import functools
-import importlib
 import logging
 import math
 from dataclasses import dataclass
@@ -351,12 +349,10 @@ def _compiled_assembly_applies(coef: Tensor) -> bool:
     return pair_kernels.applies(coef) and _ppe_kernels() is not None
 
 
-@functools.cache
 def _ppe_kernels() -> ModuleType | None:
-    try:
-        return importlib.import_module("lagfluid.physics._ppe_numba")
-    except ImportError:  # numba missing: the torch assembly serves
-        return None
+    from lagfluid import pair_kernels
+
+    return pair_kernels.load("lagfluid.physics._ppe_numba")
 
 
 def _assemble_compiled(
@@ -402,10 +398,10 @@ def _assemble_compiled(
     val = np.empty(nnz, dtype=c.dtype)
     diag_at = np.empty(k, dtype=np.int64)
     kern.fill_rows(src, c, role, pos_of.numpy(), edge_start, edge_stop, inv_rho, crow, col, val, diag_at)
-    reached = kern.reached_from(crow, col, coupled)
-    isolated = ~reached
-    n_iso = int(kern.count_components(crow, col, isolated)) if isolated.any() else 0
-    diag_t = _final_diagonal(torch.from_numpy(diag), torch.from_numpy(isolated), n_iso, density, factor)
+    isolated, n_iso = _isolated_rows(
+        torch.from_numpy(crow), torch.from_numpy(col), torch.from_numpy(coupled), k
+    )
+    diag_t = _final_diagonal(torch.from_numpy(diag), isolated, n_iso, density, factor)
     val[diag_at] = diag_t.numpy()
     matrix = torch.sparse_csr_tensor(
         torch.from_numpy(crow.astype(np_idx)),
@@ -417,7 +413,7 @@ def _assemble_compiled(
     return PPESystem(
         matrix=matrix,
         index=index,
-        isolated=torch.from_numpy(isolated),
+        isolated=isolated,
         num_particles=n,
         n_isolated_components=n_iso,
     )
@@ -536,17 +532,27 @@ def _csr_with_diagonal(
     return crow, col, val, pos_diag
 
 
-def _isolated_rows(crow: Tensor, col: Tensor, coupled: Tensor, k: int, components: str) -> tuple[Tensor, int]:
-    """Rows of connected components (graph: the matrix pattern) that contain no coupled row."""
+def _isolated_rows(
+    crow: Tensor, col: Tensor, coupled: Tensor, k: int, components: str = "auto"
+) -> tuple[Tensor, int]:
+    """Rows of connected components (graph: the matrix pattern) that contain no coupled row.
+
+    Components are labelled on the CPU by the compiled search (``auto``, with Numba) or SciPy's
+    ``connected_components`` (``scipy``, or ``auto`` without Numba); on other devices by sparse products.
+    """
     if components not in ("auto", "scipy", "torch"):
         raise ValueError(f"components must be 'auto', 'scipy' or 'torch', got {components!r}")
     if k == 0:
         return coupled.clone(), 0
     if components == "scipy" or (components == "auto" and coupled.device.type == "cpu"):
         crow_np, col_np = crow.cpu().numpy(), col.cpu().numpy()
-        graph = sp.csr_matrix((np.ones(col_np.size, dtype=np.int8), col_np, crow_np), shape=(k, k))
-        # The pattern is symmetric, so strong components are the components (and need no transpose).
-        _, labels = connected_components(graph, directed=True, connection="strong")
+        kern = _ppe_kernels() if components == "auto" else None
+        if kern is not None:
+            labels = kern.component_labels(crow_np, col_np)
+        else:
+            graph = sp.csr_matrix((np.ones(col_np.size, dtype=np.int8), col_np, crow_np), shape=(k, k))
+            # The pattern is symmetric, so strong components are the components (and need no transpose).
+            _, labels = connected_components(graph, directed=True, connection="strong")
         has_dirichlet = np.bincount(labels, weights=coupled.cpu().numpy()) > 0
         iso_np = ~has_dirichlet[labels]
         n_iso = int(np.unique(labels[iso_np]).size)
