@@ -85,3 +85,45 @@ def fill_below(values, bound, offsets, src, dst, rel, out_src, out_dst, out_rel,
                     out_rel[k, j] = rel[e, j]
                 out_dist[k] = values[e]
                 k += 1
+
+
+@njit(parallel=True, cache=True)
+def cell_search_count(pos, cell, order, cell_start, dims, reach, recv, bound2, counts):
+    """Per receiver r: ``counts[r + 1]`` = particles j != recv[r] within ``reach`` cells with d2 < bound2.
+
+    cell: (N, 4) int64 cell coordinates (graph id, cz, cy, cx); order: particles sorted by cell key;
+    cell_start: (prod(dims) + 1,) where each cell's particles start in ``order`` (dense table).
+    """
+    for r in prange(recv.shape[0]):
+        i = recv[r]
+        found = 0
+        for cz in range(max(cell[i, 1] - reach, 0), min(cell[i, 1] + reach + 1, dims[1])):
+            for cy in range(max(cell[i, 2] - reach, 0), min(cell[i, 2] + reach + 1, dims[2])):
+                row = ((cell[i, 0] * dims[1] + cz) * dims[2] + cy) * dims[3]
+                lo = row + max(cell[i, 3] - reach, 0)
+                hi = row + min(cell[i, 3] + reach + 1, dims[3])
+                for k in range(cell_start[lo], cell_start[hi]):  # a run of cells along x is contiguous
+                    j = order[k]
+                    if j != i and _squared_distance(pos, j, i) < bound2:
+                        found += 1
+        counts[r + 1] = found
+
+
+@njit(parallel=True, cache=True)
+def cell_search_fill(pos, cell, order, cell_start, dims, reach, recv, bound2, offsets, out_i, out_j):
+    """The pairs :func:`cell_search_count` counted, each receiver's sources sorted ascending."""
+    for r in prange(recv.shape[0]):
+        i = recv[r]
+        k_out = offsets[r]
+        for cz in range(max(cell[i, 1] - reach, 0), min(cell[i, 1] + reach + 1, dims[1])):
+            for cy in range(max(cell[i, 2] - reach, 0), min(cell[i, 2] + reach + 1, dims[2])):
+                row = ((cell[i, 0] * dims[1] + cz) * dims[2] + cy) * dims[3]
+                lo = row + max(cell[i, 3] - reach, 0)
+                hi = row + min(cell[i, 3] + reach + 1, dims[3])
+                for k in range(cell_start[lo], cell_start[hi]):
+                    j = order[k]
+                    if j != i and _squared_distance(pos, j, i) < bound2:
+                        out_i[k_out] = i
+                        out_j[k_out] = j
+                        k_out += 1
+        out_j[offsets[r] : offsets[r + 1]].sort()  # in place: no allocation per receiver

@@ -19,9 +19,12 @@ Conventions (shared with PyG, ``flow="source_to_target"``):
 * The search never truncates silently: with ``max_num_neighbors`` it raises
   :class:`NeighborOverflowError`; without it, every neighbour is returned.
 
-Backends: ``"scipy"`` (k-d tree, CPU default), ``"torch_cluster"`` (optional compiled extension,
-CUDA default when installed), ``"cell_list"`` (pure torch cell list, any device), ``"brute"``
-(chunked all-pairs, the reference for tests).
+Backends: ``"numba"`` (compiled parallel cell list, CPU default; :func:`lagfluid.pair_kernels.cell_search`),
+``"scipy"`` (k-d tree, the CPU default without Numba), ``"torch_cluster"`` (optional compiled extension,
+CUDA default when installed), ``"cell_list"`` (pure torch cell list, any device), ``"brute"`` (chunked
+all-pairs, the reference for tests). Measured on ``dam_medium`` (58k particles, the 10k fluid particles as
+receivers, r = 4.03 l0: 2.4 M pairs, two threads): numba 66 ms, scipy 139 ms; the whole Verlet-list
+rebuild 335 -> 145 ms at 10k fluid particles and 1,311 -> 465 ms at 40k.
 """
 
 from __future__ import annotations
@@ -50,7 +53,7 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-BACKENDS: tuple[str, ...] = ("scipy", "torch_cluster", "cell_list", "brute")
+BACKENDS: tuple[str, ...] = ("numba", "scipy", "torch_cluster", "cell_list", "brute")
 """Every backend name :func:`radius_graph` knows (``"auto"`` picks one per device)."""
 
 # Candidate pairs handled at once by the cell list and the brute-force search. Each candidate costs
@@ -100,7 +103,10 @@ def _import_torch_cluster() -> ModuleType | None:
 
 def available_backends() -> tuple[str, ...]:
     """Backends usable in this environment, in the order of :data:`BACKENDS`."""
-    return tuple(b for b in BACKENDS if b != "torch_cluster" or _import_torch_cluster() is not None)
+    from lagfluid import pair_kernels
+
+    missing = {"torch_cluster": _import_torch_cluster() is None, "numba": not pair_kernels.available()}
+    return tuple(b for b in BACKENDS if not missing.get(b, False))
 
 
 def _squared_distance(rel: Tensor) -> Tensor:
@@ -216,11 +222,16 @@ def _check_inputs(
 def _resolve_backend(backend: str, device: torch.device) -> str:
     if backend == "auto":
         if device.type == "cpu":
-            return "scipy"
+            return "numba" if "numba" in available_backends() else "scipy"
         return "torch_cluster" if _import_torch_cluster() is not None else "cell_list"
     if backend not in BACKENDS:
         raise ValueError(
             f"unknown neighbour-search backend {backend!r}; available: "
+            f"{', '.join(('auto', *available_backends()))}"
+        )
+    if backend == "numba" and (device.type != "cpu" or "numba" not in available_backends()):
+        raise ValueError(
+            f"backend 'numba' runs on the CPU with numba installed (positions on {device}); available: "
             f"{', '.join(('auto', *available_backends()))}"
         )
     if backend == "torch_cluster" and _import_torch_cluster() is None:
@@ -502,9 +513,9 @@ def radius_graph(
             particle can be a source ``j``. Static boundary particles enter graphs this way, only as
             neighbours of fluid particles; non-receivers cost no search work.
         loop: add the self loop ``(i, i)`` of every receiver.
-        backend: ``"auto"`` (CPU: scipy; CUDA: torch_cluster if installed, else cell_list),
-            ``"scipy"``, ``"torch_cluster"``, ``"cell_list"`` or ``"brute"``. All return identical
-            edges.
+        backend: ``"auto"`` (CPU: numba, or scipy without Numba; CUDA: torch_cluster if installed,
+            else cell_list), ``"numba"``, ``"scipy"``, ``"torch_cluster"``, ``"cell_list"`` or ``"brute"``.
+            All return identical edges.
         max_num_neighbors: optional cap on the incoming edges of a node (its self loop included when
             ``loop``); exceeding it raises, nothing is truncated.
 
@@ -526,7 +537,16 @@ def radius_graph(
         # Dense ids 0..B-1 (keys of the cell list stay small; torch_cluster wants them).
         batch = torch.unique(batch, return_inverse=True)[1]
 
-    if backend == "brute":
+    found = None
+    if backend == "numba":
+        from lagfluid import pair_kernels
+
+        found = pair_kernels.cell_search(pos.detach(), radius, batch, recv)
+        if found is None:  # a domain too wide for the cell keys (far-flung particles): the k-d tree
+            backend = "scipy"
+    if found is not None:
+        i, j = found  # exact, and already sorted by target, then source
+    elif backend == "brute":
         i, j = _search_brute(pos.detach(), radius, batch, recv)
     elif backend == "scipy":
         i, j = _search_scipy(pos, radius, batch, receivers)
@@ -536,7 +556,8 @@ def radius_graph(
         i, j = _search_torch_cluster(pos, radius, batch, recv, max_num_neighbors)
     if loop:
         i, j = torch.cat([i, recv]), torch.cat([j, recv])
-    i, j = _sort_pairs(i, j, n)
+    if found is None or loop:
+        i, j = _sort_pairs(i, j, n)
 
     if max_num_neighbors is not None and i.numel():
         count = torch.bincount(i, minlength=n)

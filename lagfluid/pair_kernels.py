@@ -176,3 +176,62 @@ def select_below(
     src, dst = _as_numpy(edge_index[0]), _as_numpy(edge_index[1])
     kern.fill_below(d, bound, offsets, src, dst, _as_numpy(rel), out[0], out[1], out_rel, out_dist)
     return torch.from_numpy(out), torch.from_numpy(out_rel), torch.from_numpy(out_dist)
+
+
+# The cell list keeps a dense table of cells: above this many cells per particle (a far-flung particle
+# stretching the box) the caller falls back to the k-d tree.
+_MAX_CELLS_PER_PARTICLE = 64
+# Cells per search radius: edge r/2 scans (5/2)^3 = 15.6 r^3 around a receiver instead of 27 r^3.
+_CELLS_PER_RADIUS = 2
+
+
+def cell_search(
+    pos: Tensor, radius: float, batch: Tensor | None, receivers: Tensor
+) -> tuple[Tensor, Tensor] | None:
+    """Every pair (i receiver, j any particle, i != j, same graph) with torch's ``|x_j - x_i| < radius``.
+
+    A compiled cell list: particles binned into cubes of edge ``radius / 2`` (+1e-6), each receiver scans
+    the 5^3 cells around it in parallel, the pairs are cut at the exact squared threshold of torch's
+    ``sqrt`` (:func:`_squared_bound`), so the edges are those of every other backend, sorted by target,
+    then source. Measured in the Verlet-list rebuild: see ``lagfluid/neighbors.py`` (backend ``numba``).
+
+    Args:
+        pos: (N, D) CPU positions, D in {2, 3}.
+        radius: metres.
+        batch: optional (N,) dense graph ids 0..B-1.
+        receivers: (R,) int64 receiver indices, ascending.
+
+    Returns:
+        ``(i, j)`` (E,) int64 each, or None when the particles' box holds too many cells for a dense table.
+    """
+    kern = _kernels()
+    p = _as_numpy(pos)
+    n, d = p.shape
+    coords = p.astype(np.float64)
+    lo = coords.min(axis=0) if n else np.zeros(d)
+    edge = float(radius) * (1.0 + 1e-6) / _CELLS_PER_RADIUS  # a pair within radius is <= 2 cells apart
+    cell = np.zeros((n, 4), dtype=np.int64)
+    dims = np.ones(4, dtype=np.int64)
+    for axis in range(d):
+        cell[:, 3 - axis] = np.floor((coords[:, axis] - lo[axis]) / edge).astype(np.int64)
+        dims[3 - axis] = int(cell[:, 3 - axis].max()) + 1 if n else 1
+    if batch is not None:
+        cell[:, 0] = _as_numpy(batch).astype(np.int64)
+        dims[0] = int(cell[:, 0].max()) + 1 if n else 1
+    total = float(np.prod(dims.astype(np.float64)))
+    if total > _MAX_CELLS_PER_PARTICLE * max(n, 1024):
+        return None
+    keys = ((cell[:, 0] * dims[1] + cell[:, 1]) * dims[2] + cell[:, 2]) * dims[3] + cell[:, 3]
+    order = np.argsort(keys, kind="stable")
+    cell_start = np.zeros(int(total) + 1, dtype=np.int64)
+    np.cumsum(np.bincount(keys, minlength=int(total)), out=cell_start[1:])
+    recv = _as_numpy(receivers).astype(np.int64)
+    bound2 = p.dtype.type(_squared_bound(float(radius), pos.dtype))
+    counts = np.zeros(recv.shape[0] + 1, dtype=np.int64)
+    args = (p, cell, order, cell_start, dims, _CELLS_PER_RADIUS, recv, bound2)
+    kern.cell_search_count(*args, counts)
+    offsets = np.cumsum(counts)
+    out_i = np.empty(int(offsets[-1]), dtype=np.int64)
+    out_j = np.empty(int(offsets[-1]), dtype=np.int64)
+    kern.cell_search_fill(*args, offsets, out_i, out_j)
+    return torch.from_numpy(out_i), torch.from_numpy(out_j)

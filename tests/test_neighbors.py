@@ -148,6 +148,34 @@ def test_far_flung_particle(backend):
     assert [125, 126] in out.t().tolist()
 
 
+def test_numba_cell_list_falls_back_to_the_kd_tree_on_a_huge_box(monkeypatch):
+    # The compiled cell list keeps a dense cell table; a box with too many cells per particle goes to SciPy.
+    from lagfluid import pair_kernels
+
+    if "numba" not in available_backends():
+        pytest.skip("numba not installed")
+    pos = torch.cat([lattice(5), torch.tensor([[3.0, 3.0, 3.0], [3.0, 3.0, 3.04]])])
+    r = 1.5 * L0
+    assert pair_kernels.cell_search(pos, r, None, torch.arange(len(pos))) is None  # ~80^3 cells, 127 points
+    calls = []
+    real = nb._search_scipy
+    monkeypatch.setattr(nb, "_search_scipy", lambda *a: calls.append(1) or real(*a))
+    out = radius_graph(pos, r, backend="numba")
+    assert calls and torch.equal(out, radius_graph(pos, r, backend="brute"))
+
+
+def test_auto_picks_numba_on_the_cpu_and_scipy_without_it(monkeypatch):
+    from lagfluid import pair_kernels
+
+    if "numba" in available_backends():
+        assert nb._resolve_backend("auto", torch.device("cpu")) == "numba"
+    monkeypatch.setattr(pair_kernels, "_compiled", lambda: None)
+    assert "numba" not in available_backends()
+    assert nb._resolve_backend("auto", torch.device("cpu")) == "scipy"
+    with pytest.raises(ValueError, match="numba"):
+        radius_graph(lattice(3), 1.5 * L0, backend="numba")
+
+
 # ------------------------------------------------------------------------------------------ options
 @pytest.mark.parametrize("backend", [*FAST, "brute"])
 def test_batching_is_block_diagonal(backend):
