@@ -127,3 +127,26 @@ def cell_search_fill(pos, cell, order, cell_start, dims, reach, recv, bound2, of
                         out_j[k_out] = j
                         k_out += 1
         out_j[offsets[r] : offsets[r + 1]].sort()  # in place: no allocation per receiver
+
+
+@njit(parallel=True, cache=True)
+def cell_any_within(pos, cell, order, cell_start, dims, reach, queries, is_target, bound2, out):
+    """``out[q]``: a particle i with ``is_target[i]``, i != queries[q], lies within the cut of queries[q]."""
+    for q in prange(queries.shape[0]):
+        j = queries[q]
+        hit = False
+        for cz in range(max(cell[j, 1] - reach, 0), min(cell[j, 1] + reach + 1, dims[1])):
+            for cy in range(max(cell[j, 2] - reach, 0), min(cell[j, 2] + reach + 1, dims[2])):
+                row = ((cell[j, 0] * dims[1] + cz) * dims[2] + cy) * dims[3]
+                lo = row + max(cell[j, 3] - reach, 0)
+                hi = row + min(cell[j, 3] + reach + 1, dims[3])
+                for k in range(cell_start[lo], cell_start[hi]):
+                    i = order[k]
+                    if is_target[i] and i != j and _squared_distance(pos, i, j) < bound2:
+                        hit = True
+                        break
+                if hit:
+                    break
+            if hit:
+                break
+        out[q] = hit

@@ -545,7 +545,9 @@ def radius_graph(
         if found is None:  # a domain too wide for the cell keys (far-flung particles): the k-d tree
             backend = "scipy"
     if found is not None:
-        i, j = found  # exact, and already sorted by target, then source
+        if not loop and max_num_neighbors is None:
+            return found  # exact, and already sorted by target, then source
+        j, i = found[0], found[1]
     elif backend == "brute":
         i, j = _search_brute(pos.detach(), radius, batch, recv)
     elif backend == "scipy":

@@ -185,15 +185,77 @@ _MAX_CELLS_PER_PARTICLE = 64
 _CELLS_PER_RADIUS = 2
 
 
-def cell_search(
-    pos: Tensor, radius: float, batch: Tensor | None, receivers: Tensor
-) -> tuple[Tensor, Tensor] | None:
+class CellList:
+    """Particles binned into cubes of edge ``radius / 2`` (+1e-6) for compiled radius queries (CPU).
+
+    Each query scans the 5^3 cells around a particle in parallel and cuts at the exact squared threshold
+    of torch's ``sqrt`` (:func:`_squared_bound`), so its pairs are those of every other backend of
+    :func:`lagfluid.neighbors.radius_graph`. Build with :meth:`build` (None when the particles' box holds
+    too many cells for the dense cell table: far-flung particles; use another search then).
+    """
+
+    def __init__(self, pos: np.ndarray, cell: np.ndarray, order: np.ndarray, cell_start: np.ndarray,
+                 dims: np.ndarray, bound2: np.generic) -> None:  # fmt: skip
+        self._args = (pos, cell, order, cell_start, dims, _CELLS_PER_RADIUS)
+        self._bound2 = bound2
+
+    @classmethod
+    def build(cls, pos: Tensor, radius: float, batch: Tensor | None = None) -> CellList | None:
+        """Bin ``pos`` (N, D), D in {2, 3}, for queries at ``radius``; ``batch``: optional dense graph ids."""
+        p = _as_numpy(pos)
+        n, d = p.shape
+        coords = p.astype(np.float64)
+        lo = coords.min(axis=0) if n else np.zeros(d)
+        edge = float(radius) * (1.0 + 1e-6) / _CELLS_PER_RADIUS  # a pair within radius is <= 2 cells apart
+        cell = np.zeros((n, 4), dtype=np.int64)
+        dims = np.ones(4, dtype=np.int64)
+        for axis in range(d):
+            cell[:, 3 - axis] = np.floor((coords[:, axis] - lo[axis]) / edge).astype(np.int64)
+            dims[3 - axis] = int(cell[:, 3 - axis].max()) + 1 if n else 1
+        if batch is not None:
+            cell[:, 0] = _as_numpy(batch).astype(np.int64)
+            dims[0] = int(cell[:, 0].max()) + 1 if n else 1
+        total = float(np.prod(dims.astype(np.float64)))
+        if total > _MAX_CELLS_PER_PARTICLE * max(n, 1024):
+            return None
+        keys = ((cell[:, 0] * dims[1] + cell[:, 1]) * dims[2] + cell[:, 2]) * dims[3] + cell[:, 3]
+        order = np.argsort(keys, kind="stable")
+        cell_start = np.zeros(int(total) + 1, dtype=np.int64)
+        np.cumsum(np.bincount(keys, minlength=int(total)), out=cell_start[1:])
+        return cls(p, cell, order, cell_start, dims, p.dtype.type(_squared_bound(float(radius), pos.dtype)))
+
+    def pairs(self, receivers: Tensor) -> Tensor:
+        """(2, E) int64 edge index [j; i]: every j != i (same graph) within the radius of each receiver i.
+
+        ``receivers``: (R,) int64 ascending; the edges come sorted by target, then source.
+        """
+        kern = _kernels()
+        recv = _as_numpy(receivers).astype(np.int64)
+        counts = np.zeros(recv.shape[0] + 1, dtype=np.int64)
+        kern.cell_search_count(*self._args, recv, self._bound2, counts)
+        offsets = np.cumsum(counts)
+        out = np.empty((2, int(offsets[-1])), dtype=np.int64)
+        kern.cell_search_fill(*self._args, recv, self._bound2, offsets, out[1], out[0])
+        return torch.from_numpy(out)
+
+    def any_within(self, queries: Tensor, targets: Tensor) -> Tensor:
+        """(Q,) bool: whether some other particle with ``targets`` True lies within the radius of each query.
+
+        Args:
+            queries: (Q,) int64 particle indices.
+            targets: (N,) bool.
+        """
+        kern = _kernels()
+        q = _as_numpy(queries).astype(np.int64)
+        out = np.zeros(q.shape[0], dtype=np.bool_)
+        kern.cell_any_within(*self._args, q, _as_numpy(targets), self._bound2, out)
+        return torch.from_numpy(out)
+
+
+def cell_search(pos: Tensor, radius: float, batch: Tensor | None, receivers: Tensor) -> Tensor | None:
     """Every pair (i receiver, j any particle, i != j, same graph) with torch's ``|x_j - x_i| < radius``.
 
-    A compiled cell list: particles binned into cubes of edge ``radius / 2`` (+1e-6), each receiver scans
-    the 5^3 cells around it in parallel, the pairs are cut at the exact squared threshold of torch's
-    ``sqrt`` (:func:`_squared_bound`), so the edges are those of every other backend, sorted by target,
-    then source. Measured in the Verlet-list rebuild: see ``lagfluid/neighbors.py`` (backend ``numba``).
+    The ``numba`` backend of :func:`lagfluid.neighbors.radius_graph` (see :class:`CellList`).
 
     Args:
         pos: (N, D) CPU positions, D in {2, 3}.
@@ -202,36 +264,8 @@ def cell_search(
         receivers: (R,) int64 receiver indices, ascending.
 
     Returns:
-        ``(i, j)`` (E,) int64 each, or None when the particles' box holds too many cells for a dense table.
+        (2, E) int64 edge index [j; i] sorted by target, then source; None when the particles' box holds too
+        many cells for a dense cell table.
     """
-    kern = _kernels()
-    p = _as_numpy(pos)
-    n, d = p.shape
-    coords = p.astype(np.float64)
-    lo = coords.min(axis=0) if n else np.zeros(d)
-    edge = float(radius) * (1.0 + 1e-6) / _CELLS_PER_RADIUS  # a pair within radius is <= 2 cells apart
-    cell = np.zeros((n, 4), dtype=np.int64)
-    dims = np.ones(4, dtype=np.int64)
-    for axis in range(d):
-        cell[:, 3 - axis] = np.floor((coords[:, axis] - lo[axis]) / edge).astype(np.int64)
-        dims[3 - axis] = int(cell[:, 3 - axis].max()) + 1 if n else 1
-    if batch is not None:
-        cell[:, 0] = _as_numpy(batch).astype(np.int64)
-        dims[0] = int(cell[:, 0].max()) + 1 if n else 1
-    total = float(np.prod(dims.astype(np.float64)))
-    if total > _MAX_CELLS_PER_PARTICLE * max(n, 1024):
-        return None
-    keys = ((cell[:, 0] * dims[1] + cell[:, 1]) * dims[2] + cell[:, 2]) * dims[3] + cell[:, 3]
-    order = np.argsort(keys, kind="stable")
-    cell_start = np.zeros(int(total) + 1, dtype=np.int64)
-    np.cumsum(np.bincount(keys, minlength=int(total)), out=cell_start[1:])
-    recv = _as_numpy(receivers).astype(np.int64)
-    bound2 = p.dtype.type(_squared_bound(float(radius), pos.dtype))
-    counts = np.zeros(recv.shape[0] + 1, dtype=np.int64)
-    args = (p, cell, order, cell_start, dims, _CELLS_PER_RADIUS, recv, bound2)
-    kern.cell_search_count(*args, counts)
-    offsets = np.cumsum(counts)
-    out_i = np.empty(int(offsets[-1]), dtype=np.int64)
-    out_j = np.empty(int(offsets[-1]), dtype=np.int64)
-    kern.cell_search_fill(*args, offsets, out_i, out_j)
-    return torch.from_numpy(out_i), torch.from_numpy(out_j)
+    cells = CellList.build(pos, radius, batch)
+    return None if cells is None else cells.pairs(receivers)

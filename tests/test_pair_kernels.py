@@ -114,7 +114,7 @@ def test_applies_only_where_the_kernels_are_exact_and_available(monkeypatch):
     assert not pair_kernels.applies(pos)
 
 
-@pytest.mark.parametrize("wall_hops", [2, None])
+@pytest.mark.parametrize("wall_hops", [1, 2, 3, None])
 def test_verlet_list_gives_the_same_graphs_with_and_without_the_kernels(monkeypatch, wall_hops):
     state = build_scene("dam", fluid_size=[6, 6, 8], tank_size=[15, 8])
     compiled = VerletNeighborList(3.1 * 0.05, 0.3 * 0.05, wall_hops=wall_hops)
@@ -138,4 +138,7 @@ def test_verlet_list_gives_the_same_graphs_with_and_without_the_kernels(monkeypa
                     (sub_got.edge_index, sub_got.rel, sub_got.dist),
                     (sub_want.edge_index, sub_want.rel, sub_want.dist),
                 )
+            # the rebuild from one compiled cell list == the radius_graph searches, pair for pair
+            assert torch.equal(compiled.candidates, plain.candidates)
+            assert compiled._fluid_prefix == plain._fluid_prefix
     assert compiled.builds == plain.builds >= 2
