@@ -24,7 +24,8 @@ Backends: ``"numba"`` (compiled parallel cell list, CPU default; :func:`lagfluid
 CUDA default when installed), ``"cell_list"`` (pure torch cell list, any device), ``"brute"`` (chunked
 all-pairs, the reference for tests). Measured on ``dam_medium`` (58k particles, the 10k fluid particles as
 receivers, r = 4.03 l0: 2.4 M pairs, two threads): numba 66 ms, scipy 139 ms; the whole Verlet-list
-rebuild 335 -> 145 ms at 10k fluid particles and 1,311 -> 465 ms at 40k.
+rebuild (one cell list, :class:`lagfluid.neighbor_list.VerletNeighborList`) 335 -> 98 ms at 10k fluid
+particles and 1,311 -> 275 ms at 40k.
 """
 
 from __future__ import annotations
