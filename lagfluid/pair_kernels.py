@@ -205,6 +205,10 @@ class CellList:
         p = _as_numpy(pos)
         n, d = p.shape
         coords = p.astype(np.float64)
+        finite = np.isfinite(coords).all(axis=1)
+        if not finite.all():  # the cell indices below would be garbage (the kernels do not bound-check)
+            bad = int(np.flatnonzero(~finite)[0])
+            raise ValueError(f"positions must be finite: particle {bad} is at {p[bad].tolist()}")
         lo = coords.min(axis=0) if n else np.zeros(d)
         edge = float(radius) * (1.0 + 1e-6) / _CELLS_PER_RADIUS  # a pair within radius is <= 2 cells apart
         cell = np.zeros((n, 4), dtype=np.int64)

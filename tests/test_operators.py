@@ -462,3 +462,8 @@ def test_compiled_laplacian_equals_the_torch_operations(monkeypatch, dtype, chan
         ops._compiled_laplacian(shuffled, ops.edge_geometry(pos, shuffled)[1], values, re, 1.0, 600) is None
     )
     assert ops._compiled_laplacian(ei, ops.edge_geometry(pos, ei)[1], values, re, 1.0, 600) is not None
+    bad = ei.clone()
+    bad[0, 5] = 600  # a source beyond the values: declined here, reported by the torch path
+    assert ops._compiled_laplacian(bad, ops.edge_geometry(pos, ei)[1], values, re, 1.0, 600) is None
+    with pytest.raises((IndexError, RuntimeError)):
+        ops.laplacian(pos, bad, values, re, 54.3, 3.24 * L0**2, geometry=ops.edge_geometry(pos, ei))

@@ -142,3 +142,15 @@ def test_verlet_list_gives_the_same_graphs_with_and_without_the_kernels(monkeypa
             assert torch.equal(compiled.candidates, plain.candidates)
             assert compiled._fluid_prefix == plain._fluid_prefix
     assert compiled.builds == plain.builds >= 2
+
+
+def test_cell_list_rejects_non_finite_positions_by_name():
+    pos = torch.rand(20, 3)
+    pos[7, 1] = float("nan")
+    with pytest.raises(ValueError, match="particle 7"):
+        pair_kernels.CellList.build(pos, 0.3)
+    state = build_scene("dam", fluid_size=[4, 4, 4], tank_size=[8, 8])
+    bad = state.pos.clone()
+    bad[3, 2] = float("inf")
+    with pytest.raises(ValueError, match="particle 3"):
+        VerletNeighborList(3.1 * 0.05, 0.3 * 0.05).graph(bad, state.ptype, 3.1 * 0.05)

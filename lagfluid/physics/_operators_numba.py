@@ -11,16 +11,19 @@ _CHUNK = 1 << 16
 
 
 @njit(parallel=True, cache=True)
-def count_descents(index):
-    """Number of places where ``index`` decreases (0: sorted ascending)."""
-    num = index.shape[0]
+def check_edges(dst, src, num_sources):
+    """(places where ``dst`` decreases, sources outside [0, num_sources)): (0, 0) for a valid graph."""
+    num = dst.shape[0]
     chunks = (num + _CHUNK - 1) // _CHUNK
     descents = 0
+    outside = 0
     for c in prange(chunks):
-        for e in range(max(1, c * _CHUNK), min(num, (c + 1) * _CHUNK)):
-            if index[e] < index[e - 1]:
+        for e in range(c * _CHUNK, min(num, (c + 1) * _CHUNK)):
+            if e > 0 and dst[e] < dst[e - 1]:
                 descents += 1
-    return descents
+            if src[e] < 0 or src[e] >= num_sources:
+                outside += 1
+    return descents, outside
 
 
 @njit(parallel=True, cache=True)

@@ -435,17 +435,16 @@ def _compiled_laplacian(
         return None
     if num_nodes > values.shape[0] or values.dtype != dist.dtype:
         return None
-    dst = edge_index[1].contiguous().numpy()
+    dst, src = edge_index[1].contiguous().numpy(), edge_index[0].contiguous().numpy()
     pair_kernels.set_threads()
-    if kern.count_descents(dst) or (dst.size and not 0 <= dst[0] <= dst[-1] < num_nodes):
-        return None  # unsorted, or targets beyond num_nodes (the torch path reports those)
+    descents, outside = kern.check_edges(dst, src, values.shape[0])
+    if descents or outside or (dst.size and not 0 <= dst[0] <= dst[-1] < num_nodes):
+        return None  # unsorted, or indices out of range (the torch path reports those)
     row_ptr = np.searchsorted(dst, np.arange(num_nodes + 1), side="left")
     vals = values.detach().contiguous().numpy()
     vals2 = vals.reshape(vals.shape[0], -1)
     out = np.empty((num_nodes, vals2.shape[1]), dtype=vals.dtype)
     d = dist.detach().contiguous().numpy()
     t = d.dtype.type  # torch rounds Python scalars to the tensor's dtype
-    kern.laplacian_rows(
-        edge_index[0].contiguous().numpy(), d, vals2, row_ptr, t(re), t(_R_MIN), t(scale), out
-    )
+    kern.laplacian_rows(src, d, vals2, row_ptr, t(re), t(_R_MIN), t(scale), out)
     return torch.from_numpy(out.reshape((num_nodes, *values.shape[1:])))
