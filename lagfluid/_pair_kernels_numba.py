@@ -87,6 +87,15 @@ def fill_below(values, bound, offsets, src, dst, rel, out_src, out_dst, out_rel,
                 k += 1
 
 
+@njit(cache=True, inline="always")
+def _cell_run(cell, cell_start, dims, reach, i, cz, cy):
+    """[start, stop) in ``order`` of cells (cz, cy, x within ``reach`` of particle i), contiguous along x."""
+    row = ((cell[i, 0] * dims[1] + cz) * dims[2] + cy) * dims[3]
+    lo = row + max(cell[i, 3] - reach, 0)
+    hi = row + min(cell[i, 3] + reach + 1, dims[3])
+    return cell_start[lo], cell_start[hi]
+
+
 @njit(parallel=True, cache=True)
 def cell_search_count(pos, cell, order, cell_start, dims, reach, recv, bound2, counts):
     """Per receiver r: ``counts[r + 1]`` = particles j != recv[r] within ``reach`` cells with d2 < bound2.
@@ -99,10 +108,8 @@ def cell_search_count(pos, cell, order, cell_start, dims, reach, recv, bound2, c
         found = 0
         for cz in range(max(cell[i, 1] - reach, 0), min(cell[i, 1] + reach + 1, dims[1])):
             for cy in range(max(cell[i, 2] - reach, 0), min(cell[i, 2] + reach + 1, dims[2])):
-                row = ((cell[i, 0] * dims[1] + cz) * dims[2] + cy) * dims[3]
-                lo = row + max(cell[i, 3] - reach, 0)
-                hi = row + min(cell[i, 3] + reach + 1, dims[3])
-                for k in range(cell_start[lo], cell_start[hi]):  # a run of cells along x is contiguous
+                start, stop = _cell_run(cell, cell_start, dims, reach, i, cz, cy)
+                for k in range(start, stop):
                     j = order[k]
                     if j != i and _squared_distance(pos, j, i) < bound2:
                         found += 1
@@ -117,10 +124,8 @@ def cell_search_fill(pos, cell, order, cell_start, dims, reach, recv, bound2, of
         k_out = offsets[r]
         for cz in range(max(cell[i, 1] - reach, 0), min(cell[i, 1] + reach + 1, dims[1])):
             for cy in range(max(cell[i, 2] - reach, 0), min(cell[i, 2] + reach + 1, dims[2])):
-                row = ((cell[i, 0] * dims[1] + cz) * dims[2] + cy) * dims[3]
-                lo = row + max(cell[i, 3] - reach, 0)
-                hi = row + min(cell[i, 3] + reach + 1, dims[3])
-                for k in range(cell_start[lo], cell_start[hi]):
+                start, stop = _cell_run(cell, cell_start, dims, reach, i, cz, cy)
+                for k in range(start, stop):
                     j = order[k]
                     if j != i and _squared_distance(pos, j, i) < bound2:
                         out_i[k_out] = i
@@ -137,10 +142,8 @@ def cell_any_within(pos, cell, order, cell_start, dims, reach, queries, is_targe
         hit = False
         for cz in range(max(cell[j, 1] - reach, 0), min(cell[j, 1] + reach + 1, dims[1])):
             for cy in range(max(cell[j, 2] - reach, 0), min(cell[j, 2] + reach + 1, dims[2])):
-                row = ((cell[j, 0] * dims[1] + cz) * dims[2] + cy) * dims[3]
-                lo = row + max(cell[j, 3] - reach, 0)
-                hi = row + min(cell[j, 3] + reach + 1, dims[3])
-                for k in range(cell_start[lo], cell_start[hi]):
+                start, stop = _cell_run(cell, cell_start, dims, reach, j, cz, cy)
+                for k in range(start, stop):
                     i = order[k]
                     if is_target[i] and i != j and _squared_distance(pos, i, j) < bound2:
                         hit = True
