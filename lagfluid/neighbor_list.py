@@ -330,7 +330,8 @@ class _WallRows:
     Attributes:
         candidates: (2, Ew) the candidate pairs into walls (sorted by target, then source).
         rel, dist: (Ew, 3), (Ew,) geometry buffers: exact for boundary sources, refreshed for fluid sources
-            by :meth:`geometry`.
+            by :meth:`geometry`; None until its first call (the compiled CPU filter recomputes every pair
+            in one pass and never asks, so the default path holds no ~16 bytes per wall pair for nothing).
         dyn: (Ed,) positions (in ``candidates``) of the pairs with a fluid source; ``dyn_edges`` their pairs,
             ``dyn_dst`` their targets.
         hop_src, hop_dst: boundary-to-wall pairs closer than the cutoff (static): the hops between walls.
@@ -338,8 +339,8 @@ class _WallRows:
     """
 
     candidates: Tensor
-    rel: Tensor
-    dist: Tensor
+    rel: Tensor | None
+    dist: Tensor | None
     dyn: Tensor
     dyn_edges: Tensor
     dyn_dst: Tensor
@@ -354,17 +355,19 @@ class _WallRows:
 
     @classmethod
     def build(cls, pos: Tensor, candidates: Tensor, n_fluid: int, cutoff: float) -> _WallRows:
-        """Cache the geometry of ``candidates`` (2, Ew) into walls at ``pos`` (N, 3)."""
-        rel, dist = edge_vectors(pos, candidates)
+        """Index the ``candidates`` (2, Ew) into walls at ``pos`` (N, 3): fluid-source pairs and wall hops."""
         from_fluid = candidates[0] < n_fluid
         dyn = torch.nonzero(from_fluid).flatten()
         dyn_edges = take_edges(candidates, dyn)
-        hop = torch.nonzero(~from_fluid & (dist < cutoff)).flatten()
-        hop_pairs = take_edges(candidates, hop)
+        static = take_edges(candidates, torch.nonzero(~from_fluid).flatten())  # boundary sources, in order
+        if pair_kernels.applies(pos):
+            hop_pairs = pair_kernels.pairs_within(pos, [static], cutoff)[0]
+        else:
+            hop_pairs = take_edges(static, torch.nonzero(edge_vectors(pos, static)[1] < cutoff).flatten())
         return cls(
             candidates,
-            rel,
-            dist,
+            None,
+            None,
             dyn,
             dyn_edges,
             dyn_edges[1],
@@ -379,6 +382,9 @@ class _WallRows:
         The returned ``rel`` and ``dist`` are the internal buffers (overwritten by the next call): take
         copies (``index_select``) of what is kept.
         """
+        if self.rel is None or self.dist is None:  # first call: the boundary-source pairs, static from now on
+            # detached: a static boundary takes no gradient, and the buffer is written in place below
+            self.rel, self.dist = edge_vectors(pos.detach(), self.candidates)
         rel, dist = edge_vectors(pos, self.dyn_edges)
         self.rel.index_copy_(0, self.dyn, rel)
         self.dist.index_copy_(0, self.dyn, dist)
