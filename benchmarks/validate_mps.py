@@ -14,7 +14,9 @@ with provenance (date, machine, versions, git commit, command, runtime). Every c
    surge front vs Martin & Moyce (1952) and Koshizuka & Oka (1996);
 6. dt robustness: a small dam at dt = 1, 2, 4 ms.
 
-The solver is run as the project runs it (``conf/solver/mps.yaml``, scene dtype float32), never tuned here.
+The solver is run as the project runs it (``conf/solver/mps.yaml``, scene dtype float32), never tuned here;
+``--solver key=value ...`` validates a configured variant (e.g. ``pressure_gradient=corrected``) into its own
+report (``validate_mps_pressure_gradient_corrected.*``).
 """
 
 from __future__ import annotations
@@ -114,9 +116,13 @@ class RunLog:
         self.series.setdefault(key, []).append(float(value))
 
 
+# Set from ``--solver key=value ...``: applied to every run of this process, under the per-call overrides.
+SOLVER_OVERRIDES: dict[str, Any] = {}
+
+
 def solver_config(**overrides: Any) -> Any:
-    """``conf/solver/mps.yaml`` with optional overrides."""
-    return OmegaConf.merge(OmegaConf.load(CONF_DIR / "solver" / "mps.yaml"), overrides)
+    """``conf/solver/mps.yaml`` with the command line's ``--solver`` overrides, then ``overrides``."""
+    return OmegaConf.merge(OmegaConf.load(CONF_DIR / "solver" / "mps.yaml"), SOLVER_OVERRIDES, overrides)
 
 
 def make_sim(**overrides: Any) -> Any:
@@ -733,13 +739,24 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="reduced sizes and durations (< ~3 min)")
     parser.add_argument("--out", type=Path, default=None, help="path stem for .md/.csv (default results/)")
+    parser.add_argument(
+        "--solver",
+        nargs="*",
+        default=[],
+        metavar="KEY=VALUE",
+        help="overrides of conf/solver/mps.yaml for every run, e.g. pressure_gradient=corrected "
+        "(default report: results/validate_mps_<key>_<value>...)",
+    )
     return parser.parse_args(argv)
 
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     torch.set_num_threads(int(os.environ.get("OMP_NUM_THREADS", "1")))
-    suffix = "_quick" if args.quick else ""
+    SOLVER_OVERRIDES.clear()
+    SOLVER_OVERRIDES.update(OmegaConf.to_container(OmegaConf.from_dotlist(args.solver)))
+    variant = "".join("_" + item.replace("=", "_").replace(".", "_") for item in args.solver)
+    suffix = ("_quick" if args.quick else "") + variant
     stem = args.out or RESULTS / f"validate_mps{suffix}"
     figdir = stem.parent
     figdir.mkdir(parents=True, exist_ok=True)

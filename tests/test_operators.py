@@ -247,6 +247,117 @@ def test_min_pressure_gradient_is_repulsive(dtype):
     assert bool((ops.gradient(pos, ei, p, 2.1 * L0, N0_21)[top, 2] > 0).any())
 
 
+# ------------------------------------------------------------------- corrected pressure gradient
+def jittered_lattice(dtype, re_factor, amplitude=0.2, seed=3):
+    """The lattice with every site moved by up to ``amplitude`` l0 per axis (a disordered fluid)."""
+    pos, _, interior, idx = lattice(torch.float64, re_factor)
+    gen = torch.Generator().manual_seed(seed)
+    pos = pos + (torch.rand(pos.shape, generator=gen, dtype=torch.float64) - 0.5) * 2 * amplitude * L0
+    pos = pos.to(dtype)
+    return pos, brute_edges(pos, re_factor * L0), interior, idx
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_corrected_pressure_gradient_exact_for_linear_fields_on_a_disordered_lattice(dtype):
+    # The corrective matrix makes the linear part exact at any non-degenerate neighbourhood, and for a
+    # linear field every neighbour lies on the fit, so the stabilising term vanishes: the result is a.
+    pos, ei, interior, _ = jittered_lattice(dtype, 2.1)
+    p = linear_field(pos)
+    g = ops.corrected_pressure_gradient(pos, ei, p, 2.1 * L0, N0_21)
+    expected = torch.tensor(A, dtype=torch.float64).expand(int(interior.sum()), 3)
+    close(g[interior], expected, dtype, 0, atol_for(dtype, 20))
+    # ... where neither the minimum-pressure nor the plain MPS gradient is (this test can fail).
+    for other in (ops.min_pressure_gradient, ops.gradient):
+        error = (other(pos, ei, p, 2.1 * L0, N0_21)[interior].double() - expected).abs().max()
+        assert float(error) > 0.1
+
+
+def test_corrected_pressure_gradient_exact_in_2d():
+    axis = torch.arange(11)
+    idx = torch.stack(torch.meshgrid(axis, axis, indexing="ij"), dim=-1).reshape(-1, 2)
+    gen = torch.Generator().manual_seed(4)
+    xy = (idx - 5).double() * L0 + (
+        torch.rand(idx.shape, generator=gen, dtype=torch.float64) - 0.5
+    ) * 0.4 * L0
+    pos = torch.cat([xy, torch.zeros(xy.shape[0], 1, dtype=torch.float64)], dim=1)
+    ei = brute_edges(pos, 2.1 * L0)
+    interior = ((idx >= 2) & (idx <= 8)).all(dim=1)
+    p = 1.5 * pos[:, 0] - 2.0 * pos[:, 1] + 3.0
+    g = ops.corrected_pressure_gradient(pos, ei, p, 2.1 * L0, 6.539, dim=2)
+    close(g[interior], torch.tensor([1.5, -2.0, 0.0]).expand(int(interior.sum()), 3), torch.float64, 0, 1e-9)
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_hydrostatic_column_shift_destabilises_the_minimum_gradient_only(dtype):
+    # The mechanism behind the resting column's spurious motion. Hydrostatic p = rho g (z_top - z) at every
+    # particle's actual height; one interior column displaced by delta along z. The minimum-pressure
+    # gradient's repulsion (p_i - p_min ~ 2 rho g l0) then pushes the column further the way it moved: the
+    # simple-cubic lattice is shear-unstable under load (~6.3 m/s^2 per l0 at g = 9.81). The corrected
+    # gradient gives exactly g for any delta (neutral, as an inviscid fluid is to a shear).
+    rho, g = 1000.0, 9.81
+    pos0, ei, _, idx = lattice(torch.float64, 2.1)
+    column = (idx[:, 0] == 6) & (idx[:, 1] == 6)
+    k = int(torch.nonzero(column & (idx[:, 2] == 6))[0, 0])
+
+    def support(op, delta):  # upward acceleration -grad_z p / rho of the column's centre particle
+        pos = pos0.clone()
+        pos[column, 2] += delta * L0
+        pos = pos.to(dtype)
+        p = rho * g * (pos[:, 2].max() + L0 - pos[:, 2])
+        return float(-op(pos, ei, p, 2.1 * L0, N0_21)[k, 2]) / rho
+
+    for delta in (-0.1, 0.1):
+        assert support(ops.corrected_pressure_gradient, delta) == pytest.approx(g, rel=1e-4)
+    # Sunk column: less support; raised column: more. Anti-restoring, as large as measured in the solver.
+    stiffness = (support(ops.min_pressure_gradient, 0.1) - support(ops.min_pressure_gradient, -0.1)) / 0.2
+    assert 4.0 < stiffness < 9.0
+    # A single displaced particle is restored by the same repulsion (its own column neighbours push back).
+    pos = pos0.clone()
+    pos[k, 2] -= 0.1 * L0
+    p = rho * g * (pos[:, 2].max() + L0 - pos[:, 2])
+    assert float(-ops.min_pressure_gradient(pos.to(dtype), ei, p.to(dtype), 2.1 * L0, N0_21)[k, 2]) / rho > g
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_corrected_pressure_gradient_pushes_a_compressed_pair_apart(dtype):
+    # Two interior particles pressed together carry a pressure peak (what the PPE gives them): the
+    # stabilising term separates them, as the minimum-pressure gradient does, by at most as much.
+    pos, ei, _, idx = lattice(torch.float64, 2.1)
+    a = int(torch.nonzero((idx == torch.tensor([6, 6, 6])).all(dim=1))[0, 0])
+    b = int(torch.nonzero((idx == torch.tensor([7, 6, 6])).all(dim=1))[0, 0])
+    pos[a, 0] += 0.2 * L0
+    pos[b, 0] -= 0.2 * L0
+    pos = pos.to(dtype)
+    ei = brute_edges(pos, 2.1 * L0)
+    p = linear_field(pos) + 0.0
+    p[[a, b]] += 50.0
+    corrected = ops.corrected_pressure_gradient(pos, ei, p, 2.1 * L0, N0_21)
+    minimum = ops.min_pressure_gradient(pos, ei, p, 2.1 * L0, N0_21)
+    linear = torch.tensor(A, dtype=dtype)
+    # -grad p pushes a towards -x (away from b) and b towards +x, beyond the linear field's gradient.
+    assert float(corrected[a, 0] - linear[0]) > 0 and float(corrected[b, 0] - linear[0]) < 0
+    assert float((corrected[a] - linear).norm()) <= float((minimum[a] - linear).norm()) * 1.0001
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_corrected_pressure_gradient_zero_constant_and_sparse(dtype):
+    pos, ei, _, _ = jittered_lattice(dtype, 2.1)
+    re = 2.1 * L0
+    n = pos.shape[0]
+    assert bool((ops.corrected_pressure_gradient(pos, ei, torch.zeros(n, dtype=dtype), re, N0_21) == 0).all())
+    p = torch.rand(n, generator=torch.Generator().manual_seed(0), dtype=torch.float64).to(dtype)
+    g = ops.corrected_pressure_gradient(pos, ei, p, re, N0_21)
+    g_shift = ops.corrected_pressure_gradient(pos, ei, p + 1.0, re, N0_21)
+    close(g_shift, g, dtype, 0, float(g.abs().max()) * (1e-4 if dtype == torch.float32 else 1e-11))
+    # Two particles: a degenerate (rank-1) neighbourhood keeps the authors' minimum-pressure gradient.
+    pair = torch.tensor([[0.0, 0.0, 0.0], [L0, 0.0, 0.0]], dtype=dtype)
+    pair_edges, pair_p = torch.tensor([[1, 0], [0, 1]]), torch.tensor([2.0, 5.0], dtype=dtype)
+    torch.testing.assert_close(
+        ops.corrected_pressure_gradient(pair, pair_edges, pair_p, re, 10.0),
+        ops.min_pressure_gradient(pair, pair_edges, pair_p, re, 10.0),
+    )
+
+
 # ---------------------------------------------------------------------------------- divergence
 M = ((0.3, -1.2, 0.5), (0.8, 2.0, -0.4), (1.1, 0.6, -0.9))
 
@@ -327,6 +438,9 @@ def _ops_on(pos, ei, p, v, num_nodes=None):
         "min_pressure_gradient_noself": ops.min_pressure_gradient(
             pos, near, p, re_n, N0_21, include_self=False, num_nodes=num_nodes
         ),
+        "corrected_pressure_gradient": ops.corrected_pressure_gradient(
+            pos, near, p, re_n, N0_21, num_nodes=num_nodes
+        ),
         "divergence": ops.divergence(pos, near, v, re_n, N0_21, num_nodes=num_nodes),
         "laplacian": ops.laplacian(pos, ei, v, re_l, N0_31, LAM_31 * L0**2, num_nodes=num_nodes),
     }
@@ -396,6 +510,7 @@ def test_autograd_through_values_and_positions():
     assert torch.autograd.gradcheck(lambda v: ops.divergence(pos, ei, v, re, N0_21), (v,))
     assert torch.autograd.gradcheck(lambda v: ops.laplacian(pos, ei, v, re, 10.0, 2e-3), (v,))
     assert torch.autograd.gradcheck(lambda p: ops.min_pressure_gradient(pos, ei, p, re, N0_21), (p,))
+    assert torch.autograd.gradcheck(lambda p: ops.corrected_pressure_gradient(pos, ei, p, re, N0_21), (p,))
     assert torch.autograd.gradcheck(lambda x: ops.number_density(x, ei, re), (x,))
     assert torch.autograd.gradcheck(lambda x: ops.divergence(x, ei, v.detach(), re, N0_21), (x,))
     # A plain backward pass reaches the values.

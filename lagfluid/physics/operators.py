@@ -27,6 +27,7 @@ from torch import Tensor
 from lagfluid.neighbors import edge_vectors
 
 __all__ = [
+    "corrected_pressure_gradient",
     "divergence",
     "edge_geometry",
     "gradient",
@@ -303,6 +304,79 @@ def min_pressure_gradient(
         pressure.index_select(0, src) - p_min.index_select(0, dst)
     ).unsqueeze(-1)
     return _scatter_sum(terms, dst, size) * (dim / n0)
+
+
+def corrected_pressure_gradient(
+    pos: Tensor,
+    edge_index: Tensor,
+    pressure: Tensor,
+    re: float,
+    n0: float | Tensor,
+    dim: int = 3,
+    num_nodes: int | None = None,
+    *,
+    geometry: Geometry | None = None,
+    min_determinant: float = 0.1,
+) -> Tensor:
+    """Pressure gradient exact for linear fields, stabilised only by what a linear field does not explain.
+
+    The minimum-pressure gradient (:func:`min_pressure_gradient`) adds ``(p_i - p_min,i) s_i`` with
+    ``s_i = d / n0 * sum_j (x_j - x_i) / r_ij^2 * w_ij`` to the plain gradient: a repulsion proportional to
+    the pressure drop across the neighbourhood. Under hydrostatic load (``p_i - p_min,i`` ~ 2 rho g l0 at
+    radius 2.1 l0) this repulsion makes the simple-cubic lattice shear-unstable: a column of particles
+    displaced by ``delta`` along gravity gets an extra force of ~6.3 m/s^2 per l0 * delta *in the
+    direction of the displacement* at g = 9.81 (``tests/test_operators.py``), which grows with an e-folding
+    time of ~0.1 s at l0 = 0.05 m: the "resting" column's spurious motion. This variant:
+
+    * ``G_i = M_i^-1 d / n0 * sum_j (p_j - p_i) (x_j - x_i) / r_ij^2 * w_ij`` with the corrective matrix
+      ``M_i = d / n0 * sum_j (x_j - x_i) (x_j - x_i)^T / r_ij^2 * w_ij`` (Khayyer & Gotoh 2011): exact for
+      any linear field at any particle with a non-degenerate neighbourhood (``det M_i >= min_determinant``;
+      ``M = I`` in a full lattice, ~0.5 at a flat free surface);
+    * neighbour pressures about that linear fit, ``q_j = p_j - G_i . (x_j - x_i)``, and
+      ``p_ref,i = max(p_min,i, min(p_i, min_j q_j))``;
+    * ``grad p_i = G_i + (p_i - p_ref,i) s_i``;
+    * where ``det M_i < min_determinant`` (a splash, a thin sheet: too few directions to fit a plane), the
+      authors' gradient :func:`min_pressure_gradient` unchanged.
+
+    For a linear field every ``q_j = p_i``, so the repulsion vanishes and the gradient is exact; a pressure
+    peak at ``i`` (two particles pressed together) still pushes them apart, by at most what the authors'
+    minimum-pressure gradient would (``p_ref,i >= p_min,i``). With ``p = 0`` everywhere the result is 0 (free
+    fall stays exact). Invariant to adding a constant to ``p``.
+
+    Args:
+        pos: positions, shape (N, 3).
+        edge_index: (2, E) int64, ``[j, i]``; only its neighbours enter (drop dummy walls beforehand).
+        pressure: pressure, shape (N,).
+        re: kernel radius, metres.
+        n0: reference number density at radius ``re``.
+        dim: spatial dimension ``d`` (2: the correction acts in the x-y plane).
+        num_nodes: number of output rows (default ``N``).
+        geometry: optional precomputed ``(rel, dist)`` of these edges (see :func:`edge_geometry`).
+        min_determinant: smallest ``det M_i`` (dimensionless, 1 in a full lattice) that is inverted.
+
+    Returns:
+        Gradient, shape (N, 3). Rows without incoming edges are 0.
+    """
+    src, dst = edge_index[0], edge_index[1]
+    size = _num_nodes(pos, num_nodes)
+    rel, dist = edge_geometry(pos, edge_index, geometry)
+    terms = _gradient_terms(pos, edge_index, re, (rel, dist)) * (dim / n0)  # (E, 3)
+    p_src, p_dst = pressure.index_select(0, src), pressure.index_select(0, dst)
+    plain = _scatter_sum(terms * (p_src - p_dst).unsqueeze(-1), dst, size)  # (size, 3)
+    d = dim
+    moments = _scatter_sum(terms[:, :d].unsqueeze(2) * rel[:, :d].unsqueeze(1), dst, size)  # (size, d, d)
+    eye = torch.eye(d, dtype=pos.dtype, device=pos.device).expand_as(moments)
+    invertible = torch.linalg.det(moments) >= min_determinant
+    matrix = torch.where(invertible.view(-1, 1, 1), moments, eye)
+    linear = plain.clone()
+    linear[:, :d] = torch.linalg.solve(matrix, plain[:, :d].unsqueeze(-1)).squeeze(-1)
+    p_i = pressure[:size]
+    p_min = p_i.scatter_reduce(0, dst, p_src, reduce="amin", include_self=True)
+    about_fit = p_src - (linear.index_select(0, dst) * rel).sum(dim=1)
+    p_fit_min = p_i.scatter_reduce(0, dst, about_fit, reduce="amin", include_self=True)
+    # Degenerate neighbourhoods (a splash, a thin sheet) keep the authors' gradient: plain + minimum.
+    p_ref = torch.where(invertible, torch.maximum(p_min, p_fit_min), p_min)
+    return linear + (p_i - p_ref).unsqueeze(-1) * _scatter_sum(terms, dst, size)
 
 
 def divergence(

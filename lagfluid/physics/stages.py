@@ -67,6 +67,7 @@ class SolverSettings:
     source_divergence: float = 0.8
     source_density: float = 0.2
     clamp_negative_pressure: bool = True
+    pressure_gradient: str = "minimum"
     n0_from: str = "lattice"
     ppe_method: str = "auto"
     ppe_tol: float = 1.0e-6
@@ -89,6 +90,7 @@ class SolverSettings:
                 raise bad(name, getattr(self, name), "> 0")
         choices = {
             "n0_from": (self.n0_from, ("lattice", "initial")),
+            "pressure_gradient": (self.pressure_gradient, ("minimum", "corrected")),
             "ppe.tol_mode": (self.ppe_tol_mode, ("abs", "rel")),
             "ppe.method": (self.ppe_method, ("auto", "scipy_cg", "torch_cg", "pyamg")),
             "neighbors.backend": (self.neighbor_backend, ("auto", *BACKENDS)),
@@ -465,8 +467,13 @@ class SplitStepSimulator:
         return g.select(ctx.state.ptype.index_select(0, g.edge_index[0]) != ParticleType.DUMMY)
 
     def pressure_acceleration(self, ctx: StepContext, pos: Tensor, pressure: Tensor, graph: Graph) -> Tensor:
-        """``-grad_min(p) / rho`` on the fluid particles (N_fluid, 3), over :meth:`gradient_graph`."""
-        grad = ops.min_pressure_gradient(
+        """``-grad p / rho`` on the fluid particles (N_fluid, 3), over :meth:`gradient_graph`.
+
+        ``settings.pressure_gradient``: ``minimum`` (the authors' minimum-pressure gradient) or ``corrected``
+        (:func:`lagfluid.physics.operators.corrected_pressure_gradient`).
+        """
+        operator = {"minimum": ops.min_pressure_gradient, "corrected": ops.corrected_pressure_gradient}
+        grad = operator[self.settings.pressure_gradient](
             pos,
             graph.edge_index,
             pressure,
