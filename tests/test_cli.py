@@ -71,6 +71,19 @@ def test_every_model_and_scene_composes_and_instantiates(model, scene, request):
     sim.reset(state)
 
 
+def test_corrected_solver_profile_composes_over_the_authors_one(tmp_path):
+    from lagfluid.rollout import simulate
+
+    authors, corrected = _compose("solver=mps"), _compose("solver=mps_corrected")
+    assert authors.solver.pressure_gradient == "minimum" and authors.solver.re_laplacian == 3.1
+    assert corrected.solver.pressure_gradient == "corrected" and corrected.solver.re_laplacian == 2.1
+    # everything else is the authors' profile
+    same = {k: v for k, v in authors.solver.items() if k not in ("name", "pressure_gradient", "re_laplacian")}
+    assert same == {k: corrected.solver[k] for k in same}
+    simulate(_compose("experiment=debug", "solver=mps_corrected", "steps=3", f"out_dir={tmp_path}"))
+    assert (tmp_path / "metrics.json").exists()
+
+
 def test_file_scene_without_path_is_a_clear_error():
     from lagfluid.errors import SceneError
     from lagfluid.rollout import build_initial_state
@@ -140,6 +153,7 @@ def test_cli_guard_stop_is_one_clear_line(tmp_path):
         ("solver.n0_from=foo", "solver.n0_from must be one of lattice, initial"),
         ("solver.neighbors.skin_fraction=-1", "solver.neighbors.skin_fraction must be >= 0"),
         ("solver.ppe.method=foo", "solver.ppe.method must be one of"),
+        ("solver.pressure_gradient=steepest", "solver.pressure_gradient must be one of minimum, corrected"),
         ("write_every=0", "write_every >= 1"),
         ("scene.builder=nope", "unknown scene 'nope'"),
         ("dtype=float16", "unknown dtype 'float16'"),
