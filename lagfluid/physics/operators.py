@@ -306,6 +306,17 @@ def min_pressure_gradient(
     return _scatter_sum(terms, dst, size) * (dim / n0)
 
 
+def _adjugate(m: Tensor) -> tuple[Tensor, Tensor]:
+    """Adjugate (B, d, d) and determinant (B,) of a batch of 2 x 2 or 3 x 3 matrices (B, d, d)."""
+    if m.shape[-1] == 2:
+        a, b, c, e = m[:, 0, 0], m[:, 0, 1], m[:, 1, 0], m[:, 1, 1]
+        adj = torch.stack([torch.stack([e, -b], -1), torch.stack([-c, a], -1)], -2)
+        return adj, a * e - b * c
+    rows = (m[:, 1].cross(m[:, 2], dim=-1), m[:, 2].cross(m[:, 0], dim=-1), m[:, 0].cross(m[:, 1], dim=-1))
+    adj = torch.stack(rows, dim=-1)  # columns are the cross products of the rows: adj(m) = cof(m)^T
+    return adj, (m[:, 0] * rows[0]).sum(dim=-1)
+
+
 def corrected_pressure_gradient(
     pos: Tensor,
     edge_index: Tensor,
@@ -365,11 +376,15 @@ def corrected_pressure_gradient(
     plain = _scatter_sum(terms * (p_src - p_dst).unsqueeze(-1), dst, size)  # (size, 3)
     d = dim
     moments = _scatter_sum(terms[:, :d].unsqueeze(2) * rel[:, :d].unsqueeze(1), dst, size)  # (size, d, d)
-    eye = torch.eye(d, dtype=pos.dtype, device=pos.device).expand_as(moments)
-    invertible = torch.linalg.det(moments) >= min_determinant
-    matrix = torch.where(invertible.view(-1, 1, 1), moments, eye)
+    adjugate, det = _adjugate(moments)
+    invertible = det >= min_determinant
+    # Explicit inverse of the small symmetric matrices: torch.linalg.det + solve took ~20 ms per step for
+    # 10k 3 x 3 systems on 2 CPU threads (batched LAPACK calls), the adjugate ~1 ms.
+    solved = (adjugate @ plain[:, :d].unsqueeze(-1)).squeeze(-1) / torch.where(
+        invertible, det, 1.0
+    ).unsqueeze(-1)
     linear = plain.clone()
-    linear[:, :d] = torch.linalg.solve(matrix, plain[:, :d].unsqueeze(-1)).squeeze(-1)
+    linear[:, :d] = torch.where(invertible.unsqueeze(-1), solved, plain[:, :d])
     p_i = pressure[:size]
     p_min = p_i.scatter_reduce(0, dst, p_src, reduce="amin", include_self=True)
     about_fit = p_src - (linear.index_select(0, dst) * rel).sum(dim=1)
