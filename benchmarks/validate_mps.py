@@ -319,6 +319,14 @@ def check_hydrostatic(
         ),
         Check(
             "1 hydrostatic",
+            "growth of the residual motion: mean |v| in the last window / in the window half-way",
+            f"{np.mean(vmean[w]) / max(np.mean(vmean[steps // 2 - window : steps // 2]), 1e-30):.2f} "
+            f"({np.mean(vmean[steps // 2 - window : steps // 2]):.4f} -> {np.mean(vmean[w]):.4f} m/s)",
+            "informative (> 1: the motion still grows; a fluid at rest stays at rest)",
+            "INFO",
+        ),
+        Check(
+            "1 hydrostatic",
             "PPE converged every step",
             f"{int(sum(1 for c in log.ppe_converged if c))}/{len(log.ppe_converged)} "
             f"(iterations median {np.median(log.ppe_iterations or [math.nan]):.0f})",
