@@ -12,8 +12,8 @@ under hydrostatic load, makes the simple-cubic lattice shear-unstable: a column 
 pushed further (~6.3 m/s^2 per l0, so an e-folding time of ~0.1 s at l0 = 0.05 m, as observed; see
 ``test_hydrostatic_column_shift_destabilises_the_minimum_gradient_only`` in ``tests/test_operators.py``).
 ``pressure_gradient: corrected`` removes that term for the part of the pressure a linear field explains and
-slows the growth ~5x; what remains comes from the pressure Poisson equation (its Laplacian model is not
-exact for linear fields on a displaced lattice: a smaller ``re_laplacian`` slows it further).
+slows the growth ~5x, a smaller ``re_laplacian`` further (``solver=mps_corrected``); what drives the rest
+is open (not the fluid rows' Laplacian: making it exact for linear fields changed nothing; see the README).
 """
 
 from __future__ import annotations
