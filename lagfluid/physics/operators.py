@@ -374,18 +374,19 @@ def corrected_pressure_gradient(
     terms = _gradient_terms(pos, edge_index, re, (rel, dist)) * (dim / n0)  # (E, 3)
     p_src, p_dst = pressure.index_select(0, src), pressure.index_select(0, dst)
     plain = _scatter_sum(terms * (p_src - p_dst).unsqueeze(-1), dst, size)  # (size, 3)
-    d = dim
-    moments = _scatter_sum(terms[:, :d].unsqueeze(2) * rel[:, :d].unsqueeze(1), dst, size)  # (size, d, d)
+    moments = _scatter_sum(
+        terms[:, :dim].unsqueeze(2) * rel[:, :dim].unsqueeze(1), dst, size
+    )  # (size, dim, dim)
     adjugate, det = _adjugate(moments)
     invertible = det >= min_determinant
     # Explicit inverse of the small matrices (10k 3 x 3 on 2 CPU threads: batched torch.linalg.det + solve
     # 1.4 ms, the adjugate 0.5 ms; neither is the cost of this operator: its extra passes over the edges are,
     # 23 ms against the minimum-pressure gradient's 8 ms on dam_medium's 344k fluid-target edges).
-    solved = (adjugate @ plain[:, :d].unsqueeze(-1)).squeeze(-1) / torch.where(
+    solved = (adjugate @ plain[:, :dim].unsqueeze(-1)).squeeze(-1) / torch.where(
         invertible, det, 1.0
     ).unsqueeze(-1)
     linear = plain.clone()
-    linear[:, :d] = torch.where(invertible.unsqueeze(-1), solved, plain[:, :d])
+    linear[:, :dim] = torch.where(invertible.unsqueeze(-1), solved, plain[:, :dim])
     p_i = pressure[:size]
     p_min = p_i.scatter_reduce(0, dst, p_src, reduce="amin", include_self=True)
     about_fit = p_src - (linear.index_select(0, dst) * rel).sum(dim=1)
