@@ -15,8 +15,9 @@ with provenance (date, machine, versions, git commit, command, runtime). Every c
 6. dt robustness: a small dam at dt = 1, 2, 4 ms.
 
 The solver is run as the project runs it (``conf/solver/mps.yaml``, scene dtype float32), never tuned here;
-``--solver key=value ...`` validates a configured variant (e.g. ``pressure_gradient=corrected``) into its own
-report (``validate_mps_pressure_gradient_corrected.*``).
+``--profile NAME`` validates another solver profile (``conf/solver/NAME.yaml``, e.g. ``mps_corrected``) and
+``--solver key=value ...`` a configured variant (e.g. ``pressure_gradient=corrected``), each into its own
+report (``validate_mps_mps_corrected.*``, ``validate_mps_pressure_gradient_corrected.*``).
 """
 
 from __future__ import annotations
@@ -33,7 +34,8 @@ from typing import Any
 
 import numpy as np
 import torch
-from omegaconf import OmegaConf
+from hydra import compose, initialize_config_dir
+from omegaconf import DictConfig, OmegaConf
 
 from benchmarks.provenance import markdown, provenance
 from lagfluid.errors import RolloutError
@@ -116,13 +118,21 @@ class RunLog:
         self.series.setdefault(key, []).append(float(value))
 
 
-# Set from ``--solver key=value ...``: applied to every run of this process, under the per-call overrides.
+# Set from ``--profile NAME`` and ``--solver key=value ...``: applied to every run of this process, under
+# the per-call overrides.
+SOLVER_PROFILE: list[str] = ["mps"]
 SOLVER_OVERRIDES: dict[str, Any] = {}
 
 
+def profile_config(name: str) -> DictConfig:
+    """The solver profile ``conf/solver/<name>.yaml`` as Hydra composes it (its ``defaults`` resolved)."""
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        return compose(config_name="config", overrides=[f"solver={name}"]).solver
+
+
 def solver_config(**overrides: Any) -> Any:
-    """``conf/solver/mps.yaml`` with the command line's ``--solver`` overrides, then ``overrides``."""
-    return OmegaConf.merge(OmegaConf.load(CONF_DIR / "solver" / "mps.yaml"), SOLVER_OVERRIDES, overrides)
+    """The ``--profile`` (default ``mps``) with the ``--solver`` overrides, then ``overrides``."""
+    return OmegaConf.merge(profile_config(SOLVER_PROFILE[0]), SOLVER_OVERRIDES, overrides)
 
 
 def make_sim(**overrides: Any) -> Any:
@@ -718,8 +728,19 @@ def run_provenance(runtime: float, load_before: float) -> dict[str, str]:
         "benchmarks.validate_mps",
         load_before,
         runtime=f"{runtime:.0f} s ({runtime / 60:.1f} min)",
-        solver="conf/solver/mps.yaml (authors' coefficients, n0 from the ideal lattice), scene dtype float32",
+        solver=solver_description(),
     )
+
+
+def solver_description() -> str:
+    """The profile and overrides every run used, for the report."""
+    name = SOLVER_PROFILE[0]
+    text = f"conf/solver/{name}.yaml"
+    if name == "mps":
+        text += " (authors' coefficients, n0 from the ideal lattice)"
+    if SOLVER_OVERRIDES:
+        text += " with " + ", ".join(f"{k}={v}" for k, v in SOLVER_OVERRIDES.items())
+    return text + ", scene dtype float32"
 
 
 def write_report(checks: list[Check], prov: dict[str, str], stem: Path, extra: str) -> None:
@@ -748,11 +769,18 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--quick", action="store_true", help="reduced sizes and durations (< ~3 min)")
     parser.add_argument("--out", type=Path, default=None, help="path stem for .md/.csv (default results/)")
     parser.add_argument(
+        "--profile",
+        default="mps",
+        metavar="NAME",
+        help="solver profile conf/solver/NAME.yaml, e.g. mps_corrected (default mps, the authors' scheme; "
+        "report results/validate_mps_<NAME>... unless mps)",
+    )
+    parser.add_argument(
         "--solver",
         nargs="*",
         default=[],
         metavar="KEY=VALUE",
-        help="overrides of conf/solver/mps.yaml for every run, e.g. pressure_gradient=corrected "
+        help="overrides of the profile for every run, e.g. pressure_gradient=corrected "
         "(default report: results/validate_mps_<key>_<value>...)",
     )
     return parser.parse_args(argv)
@@ -761,9 +789,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     torch.set_num_threads(int(os.environ.get("OMP_NUM_THREADS", "1")))
+    SOLVER_PROFILE[0] = args.profile
     SOLVER_OVERRIDES.clear()
     SOLVER_OVERRIDES.update(OmegaConf.to_container(OmegaConf.from_dotlist(args.solver)))
-    variant = "".join("_" + item.replace("=", "_").replace(".", "_") for item in args.solver)
+    variant = "" if args.profile == "mps" else "_" + args.profile
+    variant += "".join("_" + item.replace("=", "_").replace(".", "_") for item in args.solver)
     suffix = ("_quick" if args.quick else "") + variant
     stem = args.out or RESULTS / f"validate_mps{suffix}"
     figdir = stem.parent

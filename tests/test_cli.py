@@ -77,8 +77,11 @@ def test_corrected_solver_profile_composes_over_the_authors_one(tmp_path):
     authors, corrected = _compose("solver=mps"), _compose("solver=mps_corrected")
     assert authors.solver.pressure_gradient == "minimum" and authors.solver.re_laplacian == 3.1
     assert corrected.solver.pressure_gradient == "corrected" and corrected.solver.re_laplacian == 2.1
+    assert authors.solver.source_density_reference_dt is None  # the authors' per-step density weight
+    assert corrected.solver.source_density_reference_dt == 0.002
     # everything else is the authors' profile
-    same = {k: v for k, v in authors.solver.items() if k not in ("name", "pressure_gradient", "re_laplacian")}
+    changed = ("name", "pressure_gradient", "re_laplacian", "source_density_reference_dt")
+    same = {k: v for k, v in authors.solver.items() if k not in changed}
     assert same == {k: corrected.solver[k] for k in same}
     simulate(_compose("experiment=debug", "solver=mps_corrected", "steps=3", f"out_dir={tmp_path}"))
     assert (tmp_path / "metrics.json").exists()
@@ -154,6 +157,7 @@ def test_cli_guard_stop_is_one_clear_line(tmp_path):
         ("solver.neighbors.skin_fraction=-1", "solver.neighbors.skin_fraction must be >= 0"),
         ("solver.ppe.method=foo", "solver.ppe.method must be one of"),
         ("solver.pressure_gradient=steepest", "solver.pressure_gradient must be one of minimum, corrected"),
+        ("solver.source_density_reference_dt=0", "solver.source_density_reference_dt must be > 0"),
         ("write_every=0", "write_every >= 1"),
         ("scene.builder=nope", "unknown scene 'nope'"),
         ("dtype=float16", "unknown dtype 'float16'"),

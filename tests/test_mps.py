@@ -6,7 +6,7 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from lagfluid.errors import RolloutError
+from lagfluid.errors import ConfigError, RolloutError
 from lagfluid.models.mps_simulator import build_mps
 from lagfluid.neighbor_list import VerletNeighborList
 from lagfluid.neighbors import radius_graph
@@ -229,6 +229,29 @@ def test_solver_yaml_defaults_are_the_dataclass_defaults():
     assert SolverSettings.from_config(SOLVER) == SolverSettings()
     assert SolverSettings.from_config({"neighbors": {"wall_hops": None}}).wall_hops is None
     assert SolverSettings.from_config({"ppe": {"tol": "1e-8"}}).ppe_tol == 1e-8  # YAML's string 1e-8
+
+
+def test_reference_dt_makes_the_density_term_a_fixed_physical_relaxation():
+    from lagfluid.physics.ppe import ppe_source
+
+    # A 1 % compression and no divergence: the source is the density term alone.
+    n0, div, n = 100.0, torch.zeros(1), torch.full((1,), 101.0)
+
+    def source(settings, dt):
+        return float(ppe_source(div, n, n0, dt, gamma_density=settings.density_source_weight(dt)))
+
+    authors, physical = SolverSettings(), SolverSettings(source_density_reference_dt=0.002)
+    assert physical.density_source_weight(0.002) == authors.density_source_weight(0.002) == 0.2
+    # Authors: the same fraction per step, so the pressure asked for grows as 1/dt^2 ...
+    assert source(authors, 0.001) == pytest.approx(4 * source(authors, 0.002))
+    # ... with the reference dt, the same density error asks for the same pressure whatever dt,
+    for dt in (0.0005, 0.001, 0.003):
+        assert source(physical, dt) == pytest.approx(source(physical, 0.002))
+    # ... until one step would correct more than all of it (tau = 2 ms / sqrt(0.2) = 4.47 ms).
+    assert physical.density_source_weight(0.004) == pytest.approx(0.8)
+    assert physical.density_source_weight(0.005) == 1.0
+    with pytest.raises(ConfigError, match="source_density_reference_dt must be > 0"):
+        SolverSettings(source_density_reference_dt=-0.002)
 
 
 def _old_filter(nl, pos, ptype, radius):

@@ -120,9 +120,8 @@ class ExactPressure:
                 num_nodes=n_all,
                 geometry=g_div.geometry,
             )
-            b = ppe_source(
-                div, n, c.n0, params.dt, gamma_div=s.source_divergence, gamma_density=s.source_density
-            )
+            weights = {"gamma_div": s.source_divergence, "gamma_density": s.density_source_weight(params.dt)}
+            b = ppe_source(div, n, c.n0, params.dt, **weights)
             coef = ops.laplacian_weights(
                 g_lap.dist, ctx.radius(s.re_laplacian), c.n0_lap, c.lam, dim=params.dim
             )

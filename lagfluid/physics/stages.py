@@ -66,6 +66,7 @@ class SolverSettings:
     surface_beta: float = 0.97
     source_divergence: float = 0.8
     source_density: float = 0.2
+    source_density_reference_dt: float | None = None
     clamp_negative_pressure: bool = True
     pressure_gradient: str = "minimum"
     n0_from: str = "lattice"
@@ -106,6 +107,25 @@ class SolverSettings:
             raise bad("ppe.tol / ppe.maxiter", (self.ppe_tol, self.ppe_maxiter), "> 0 / >= 1")
         if not 0 < self.surface_beta <= 1:
             raise bad("surface_beta", self.surface_beta, "in (0, 1]")
+        if self.source_density_reference_dt is not None and not self.source_density_reference_dt > 0:
+            raise bad("source_density_reference_dt", self.source_density_reference_dt, "> 0 (s) or null")
+
+    def density_source_weight(self, dt: float) -> float:
+        """Weight of the PPE source's density term ``(n - n0)/(dt^2 n0)`` at time step ``dt`` (s).
+
+        ``source_density_reference_dt`` null (the authors): ``source_density`` whatever ``dt``, i.e. the
+        solve removes that fraction of the density error *per step*. The pressure that does it scales as
+        ``1/dt^2`` while the particle-scale density noise does not shrink with ``dt``, so the kicks per
+        unit time grow as ``dt`` falls: a 10x10x20 resting column reaches a mean |v| of 106 mm/s at 2 s
+        with dt = 1 ms against 30 mm/s at 2 ms (``solver=mps_corrected``; 159 against 103 with the
+        authors' gradient). Set to a time step ``dt_ref`` (s), the weight is
+        ``min(1, source_density (dt/dt_ref)^2)``: the density error then relaxes on the fixed physical
+        time ``dt_ref / sqrt(source_density)`` (4.5 ms for 0.2 at 2 ms), which one step cannot beat
+        (the cap: full correction in one step).
+        """
+        if self.source_density_reference_dt is None:
+            return self.source_density
+        return min(1.0, self.source_density * (dt / self.source_density_reference_dt) ** 2)
 
     @classmethod
     def from_config(cls, cfg: Any) -> SolverSettings:
