@@ -18,13 +18,22 @@ import torch
 
 
 def git_commit() -> str:
-    """Short commit of the source tree, noting uncommitted changes; 'unknown' outside a repository."""
+    """Short commit of the source tree, noting uncommitted changes; 'unknown' outside a repository.
+
+    Changes under ``benchmarks/results/`` do not count: they are what a benchmark writes (a run's own
+    figures, written before its report, would otherwise mark its report as made from uncommitted code).
+    """
     root = Path(__file__).resolve().parents[1]
     try:
         sha = subprocess.run(
             ["git", "rev-parse", "--short", "HEAD"], cwd=root, capture_output=True, text=True, check=True
         ).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain"], cwd=root, capture_output=True, text=True)
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "--", ".", ":(exclude)benchmarks/results"],
+            cwd=root,
+            capture_output=True,
+            text=True,
+        )
     except (OSError, subprocess.CalledProcessError):
         return "unknown"
     return sha + (" + uncommitted changes in the working tree" if dirty.stdout.strip() else "")
