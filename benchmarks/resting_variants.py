@@ -12,8 +12,9 @@ under hydrostatic load, makes the simple-cubic lattice shear-unstable: a column 
 pushed further (~6.3 m/s^2 per l0, so an e-folding time of ~0.1 s at l0 = 0.05 m, as observed; see
 ``test_hydrostatic_column_shift_destabilises_the_minimum_gradient_only`` in ``tests/test_operators.py``).
 ``pressure_gradient: corrected`` removes that term for the part of the pressure a linear field explains and
-slows the growth ~5x, a smaller ``re_laplacian`` further (``solver=mps_corrected``); what drives the rest
-is open (not the fluid rows' Laplacian: making it exact for linear fields changed nothing; see the README).
+slows the growth ~5x, a smaller ``re_laplacian`` further. The dt 1 ms rows show the authors' per-step density
+weight making the column noisier as dt falls, and ``source_density_reference_dt`` (in
+``solver=mps_corrected``) undoing that. What drives the slow growth left is open (see the README).
 """
 
 from __future__ import annotations
