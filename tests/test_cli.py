@@ -78,9 +78,9 @@ def test_corrected_solver_profile_composes_over_the_authors_one(tmp_path):
     assert authors.solver.pressure_gradient == "minimum" and authors.solver.re_laplacian == 3.1
     assert corrected.solver.pressure_gradient == "corrected" and corrected.solver.re_laplacian == 2.1
     assert authors.solver.source_density_reference_dt is None  # the authors' per-step density weight
-    assert corrected.solver.source_density_reference_dt == 0.002
+    assert corrected.solver.source_density == 0.02 and corrected.solver.source_density_reference_dt == 0.002
     # everything else is the authors' profile
-    changed = ("name", "pressure_gradient", "re_laplacian", "source_density_reference_dt")
+    changed = ("name", "pressure_gradient", "re_laplacian", "source_density", "source_density_reference_dt")
     same = {k: v for k, v in authors.solver.items() if k not in changed}
     assert same == {k: corrected.solver[k] for k in same}
     simulate(_compose("experiment=debug", "solver=mps_corrected", "steps=3", f"out_dir={tmp_path}"))
