@@ -78,7 +78,7 @@ def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
     ap.add_argument("--steps", type=int, default=500, help="steps at dt = 2 ms (other dt: the same time)")
     ap.add_argument("--threads", type=int, default=None)
-    ap.add_argument("--only", nargs="*", default=None, metavar="VARIANT", help="run only these rows (names)")
+    ap.add_argument("--only", nargs="+", default=None, metavar="VARIANT", help="run only these rows (names)")
     args = ap.parse_args(argv)
     if args.threads:
         torch.set_num_threads(args.threads)

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import functools
 import math
 import os
 import sys
@@ -125,7 +126,20 @@ SOLVER_OVERRIDES: dict[str, Any] = {}
 
 
 def profile_config(name: str) -> DictConfig:
-    """The solver profile ``conf/solver/<name>.yaml`` as Hydra composes it (its ``defaults`` resolved)."""
+    """The solver profile ``conf/solver/<name>.yaml`` as Hydra composes it (its ``defaults`` resolved).
+
+    Raises:
+        SystemExit: no such profile (the message lists the available ones).
+    """
+    return _composed_profile(name).copy()  # a copy: callers merge into it
+
+
+@functools.cache
+def _composed_profile(name: str) -> DictConfig:
+    # Cached: composing the whole config takes ~0.1 s, and every simulator of a report asks for it.
+    available = sorted(p.stem for p in (CONF_DIR / "solver").glob("*.yaml"))
+    if name not in available:
+        raise SystemExit(f"unknown solver profile '{name}'; available: {', '.join(available)}")
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         return compose(config_name="config", overrides=[f"solver={name}"]).solver
 
@@ -739,8 +753,20 @@ def solver_description() -> str:
     if name == "mps":
         text += " (authors' coefficients, n0 from the ideal lattice)"
     if SOLVER_OVERRIDES:
-        text += " with " + ", ".join(f"{k}={v}" for k, v in SOLVER_OVERRIDES.items())
+        dotted = OmegaConf.to_container(OmegaConf.create(SOLVER_OVERRIDES))
+        text += " with " + ", ".join(f"{k}={v}" for k, v in _dotted_items(dotted))
     return text + ", scene dtype float32"
+
+
+def _dotted_items(tree: dict[str, Any], prefix: str = "") -> list[tuple[str, Any]]:
+    """``{"ppe": {"tol": 1e-8}}`` -> ``[("ppe.tol", 1e-8)]``, as ``--solver`` takes them."""
+    items: list[tuple[str, Any]] = []
+    for key, value in tree.items():
+        if isinstance(value, dict):
+            items += _dotted_items(value, f"{prefix}{key}.")
+        else:
+            items.append((f"{prefix}{key}", value))
+    return items
 
 
 def write_report(checks: list[Check], prov: dict[str, str], stem: Path, extra: str) -> None:

@@ -86,7 +86,7 @@ from lagfluid.metrics import (
 from lagfluid.models.simulator import Simulator
 from lagfluid.neighbor_list import VerletNeighborList
 from lagfluid.physics.mps import ExactAdvection
-from lagfluid.physics.stages import MPSConstants, SolverSettings, lattice_constants
+from lagfluid.physics.stages import MPSConstants, SolverSettings, lattice_constants, solver_identity
 from lagfluid.rollout import (
     Guard,
     _timing_summary,
@@ -192,7 +192,7 @@ def reference_key(cfg: DictConfig) -> dict[str, Any]:
     scene = OmegaConf.to_container(cfg.scene, resolve=True)
     key: dict[str, Any] = {
         "scene": scene,
-        "solver": OmegaConf.to_container(cfg.solver, resolve=True),
+        "solver": solver_identity(OmegaConf.to_container(cfg.solver, resolve=True)),
         "dt": scene_params(cfg).dt,
         "steps": int(cfg.steps),
         "write_every": int(cfg.write_every),

@@ -157,7 +157,7 @@ def test_cli_guard_stop_is_one_clear_line(tmp_path):
         ("solver.neighbors.skin_fraction=-1", "solver.neighbors.skin_fraction must be >= 0"),
         ("solver.ppe.method=foo", "solver.ppe.method must be one of"),
         ("solver.pressure_gradient=steepest", "solver.pressure_gradient must be one of minimum, corrected"),
-        ("solver.source_density_reference_dt=0", "solver.source_density_reference_dt must be > 0"),
+        ("solver.source_density_reference_dt=0", "solver.source_density_reference_dt must be a finite"),
         ("write_every=0", "write_every >= 1"),
         ("scene.builder=nope", "unknown scene 'nope'"),
         ("dtype=float16", "unknown dtype 'float16'"),

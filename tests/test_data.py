@@ -4,6 +4,7 @@ import json
 import shutil
 import subprocess
 import sys
+from dataclasses import replace
 
 import h5py
 import numpy as np
@@ -306,6 +307,19 @@ def test_resume_regenerates_only_what_is_missing(dataset, tmp_path):
     # a finished file made with other settings is never mixed in
     with pytest.raises(LagfluidError, match="another configuration"):
         _generate(out, "steps=4")
+
+
+def test_solver_keys_added_later_keep_old_fingerprints_at_their_neutral_value():
+    from lagfluid.data.generate import DataSpec
+    from lagfluid.physics.stages import NEUTRAL_SOLVER_KEYS
+
+    spec = DataSpec.from_config(_compose(*TINY))
+    before_the_keys = {k: v for k, v in spec.solver.items() if k not in NEUTRAL_SOLVER_KEYS}
+    assert set(NEUTRAL_SOLVER_KEYS) <= set(spec.solver)  # the config has them, at their neutral values
+    old = replace(spec, solver=before_the_keys)
+    assert spec.fingerprint(0) == old.fingerprint(0)  # a dataset made before they existed still resumes
+    for key, value in {"pressure_gradient": "corrected", "source_density_reference_dt": 0.002}.items():
+        assert replace(spec, solver={**spec.solver, key: value}).fingerprint(0) != spec.fingerprint(0), key
 
 
 def test_scene_index_jobs_make_one_scene_each_and_the_last_writes_metadata(tmp_path):

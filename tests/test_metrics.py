@@ -167,6 +167,28 @@ def test_ppe_residual_of_the_solver_pressure_is_its_tolerance(mps_pressure_step)
     assert residual < 1e-6
 
 
+def test_both_ppe_sources_use_the_dt_scaled_density_weight(mps_pressure_step):
+    """The solver's pressure stage and exact_ppe weigh the density term by density_source_weight(dt)."""
+    from dataclasses import replace
+
+    sim, state, fields, settings = mps_pressure_step
+    assert settings.source_density_reference_dt is None and state.params.dt == 0.002
+    # 0.05 at a reference of 1 ms is 0.2 at 2 ms: the same system and source as the authors' weight ...
+    same = replace(settings, source_density=0.05, source_density_reference_dt=0.001)
+    # ... while 0.2 at a reference of 1 ms is 0.8 at 2 ms
+    other = replace(settings, source_density_reference_dt=0.001)
+    at_stage = _state_at_pressure_stage(state, fields)
+    variants = (settings, same, other)
+    sources = [exact_ppe(exact_context(at_stage, s, mps_constants(state, s)))[1] for s in variants]
+    assert torch.equal(sources[0], sources[1]) and not torch.allclose(sources[0], sources[2])
+    pressures = []
+    for s in variants:
+        sim.settings = s
+        pressures.append(sim.step(state).pressure)
+    sim.settings = settings
+    assert torch.equal(pressures[0], pressures[1]) and not torch.allclose(pressures[0], pressures[2])
+
+
 def test_ppe_residual_of_scaled_and_zero_pressure_by_hand(mps_pressure_step):
     # exact solution p*: ||A (1 + a) p* - b|| / ||b|| = |a| ||b|| / ||b||; p = 0 gives ||b|| / ||b|| = 1
     _, state, fields, settings = mps_pressure_step

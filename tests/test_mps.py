@@ -250,8 +250,11 @@ def test_reference_dt_makes_the_density_term_a_fixed_physical_relaxation():
     # ... until one step would correct more than all of it (tau = 2 ms / sqrt(0.2) = 4.47 ms).
     assert physical.density_source_weight(0.004) == pytest.approx(0.8)
     assert physical.density_source_weight(0.005) == 1.0
-    with pytest.raises(ConfigError, match="source_density_reference_dt must be > 0"):
-        SolverSettings(source_density_reference_dt=-0.002)
+    for bad in (-0.002, 0.0, float("inf"), True, "2 ms"):
+        with pytest.raises(ConfigError, match="source_density_reference_dt must be a finite time step > 0"):
+            SolverSettings(source_density_reference_dt=bad)
+    with pytest.raises(ConfigError, match="source_density must be a number >= 0"):
+        SolverSettings(source_density=-0.2)
 
 
 def _old_filter(nl, pos, ptype, radius):

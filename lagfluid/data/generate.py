@@ -100,7 +100,7 @@ from lagfluid.data.store import TrajectoryFileError, TrajectoryWriter, open_lagf
 from lagfluid.errors import LagfluidError, RolloutError, SceneError
 from lagfluid.models.mps_simulator import build_mps
 from lagfluid.physics.mps import CollisionRule
-from lagfluid.physics.stages import SolverSettings, SplitStepSimulator
+from lagfluid.physics.stages import SolverSettings, SplitStepSimulator, solver_identity
 from lagfluid.rollout import Guard, git_commit, rollout, run_attributes, scene_params
 from lagfluid.scenes import build_scene
 from lagfluid.state import ParticleState, ParticleType, SceneParams
@@ -281,7 +281,7 @@ class DataSpec:
         """Hash of everything that determines the content of scene ``index``."""
         options, params, seed = self.scene_setup(index)
         # The guard and the (exact) neighbour backend do not change what a finished file holds.
-        solver = {k: v for k, v in self.solver.items() if k not in ("guard", "neighbors")}
+        solver = {k: v for k, v in solver_identity(self.solver).items() if k not in ("guard", "neighbors")}
         content = {
             "builder": self.builder,
             "options": options,

@@ -38,6 +38,19 @@ from lagfluid.neighbors import edge_vectors
 from lagfluid.physics import operators as ops
 from lagfluid.state import ParticleState, ParticleType, SceneParams
 
+# Solver keys added after datasets and reference rollouts were first made, each with the value that
+# reproduces the behaviour from before it existed. Content hashes (dataset fingerprints, the evaluation's
+# reference key) leave a key out at that value, so files made before it existed keep matching: a dataset
+# generated earlier resumes instead of being refused as "another configuration".
+NEUTRAL_SOLVER_KEYS: dict[str, Any] = {"pressure_gradient": "minimum", "source_density_reference_dt": None}
+
+
+def solver_identity(solver: dict[str, Any]) -> dict[str, Any]:
+    """``solver`` (a plain config dict) less the :data:`NEUTRAL_SOLVER_KEYS` that hold their neutral value."""
+    neutral = NEUTRAL_SOLVER_KEYS
+    return {k: v for k, v in solver.items() if not (k in neutral and v == neutral[k])}
+
+
 # (config group, key) -> (SolverSettings field, type)
 _NESTED_KEYS: dict[tuple[str, str], tuple[str, type]] = {
     ("ppe", "method"): ("ppe_method", str),
@@ -49,6 +62,11 @@ _NESTED_KEYS: dict[tuple[str, str], tuple[str, type]] = {
     ("neighbors", "skin_fraction"): ("neighbor_skin_fraction", float),
     ("neighbors", "wall_hops"): ("wall_hops", int),
 }
+
+
+def _is_number(value: object) -> bool:
+    """A real number, not a bool (YAML's ``true`` would otherwise pass as 1)."""
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
 
 
 @dataclass(frozen=True)
@@ -107,8 +125,12 @@ class SolverSettings:
             raise bad("ppe.tol / ppe.maxiter", (self.ppe_tol, self.ppe_maxiter), "> 0 / >= 1")
         if not 0 < self.surface_beta <= 1:
             raise bad("surface_beta", self.surface_beta, "in (0, 1]")
-        if self.source_density_reference_dt is not None and not self.source_density_reference_dt > 0:
-            raise bad("source_density_reference_dt", self.source_density_reference_dt, "> 0 (s) or null")
+        for key in ("source_divergence", "source_density"):
+            if not _is_number(getattr(self, key)) or getattr(self, key) < 0:
+                raise bad(key, getattr(self, key), "a number >= 0")
+        ref_dt = self.source_density_reference_dt
+        if ref_dt is not None and not (_is_number(ref_dt) and math.isfinite(ref_dt) and ref_dt > 0):
+            raise bad("source_density_reference_dt", ref_dt, "a finite time step > 0 (s) or null")
 
     def density_source_weight(self, dt: float) -> float:
         """Weight of the PPE source's density term ``(n - n0)/(dt^2 n0)`` at time step ``dt`` (s).
