@@ -348,8 +348,7 @@ def exact_ppe(ctx: StepContext) -> tuple[PPESystem, Tensor]:
         num_nodes=n_all,
         geometry=g_div.geometry,
     )
-    weights = {"gamma_div": s.source_divergence, "gamma_density": s.density_source_weight(params.dt)}
-    b = ppe_source(div, n, c.n0, params.dt, **weights)
+    b = ppe_source(div, n, c.n0, params.dt, **s.ppe_source_weights(params.dt))
     coef = ops.laplacian_weights(g_lap.dist, ctx.radius(s.re_laplacian), c.n0_lap, c.lam, dim=params.dim)
     system = assemble_ppe(
         g_lap.edge_index,

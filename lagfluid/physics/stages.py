@@ -149,6 +149,10 @@ class SolverSettings:
             return self.source_density
         return min(1.0, self.source_density * (dt / self.source_density_reference_dt) ** 2)
 
+    def ppe_source_weights(self, dt: float) -> dict[str, float]:
+        """Keyword weights ``gamma_div``, ``gamma_density`` of ``ppe.ppe_source`` at time step ``dt``."""
+        return {"gamma_div": self.source_divergence, "gamma_density": self.density_source_weight(dt)}
+
     @classmethod
     def from_config(cls, cfg: Any) -> SolverSettings:
         """Build from a ``solver`` config node (an ``omegaconf.DictConfig`` or a plain dict)."""
