@@ -1,7 +1,7 @@
 """FGN against its MPS ground truth on one scene: accuracy and wall time per step, measured in one run.
 
 Rolls out every model on the same scene for the same steps with the same threads (one after another, so
-the timings share the machine's conditions) through the package's rollout (``lagfluid.rollout.simulate``),
+the timings share the machine's conditions) through the package's rollout (``lagfluid.simulate.simulate``),
 then compares each rollout with MPS's:
 
 * density error and velocity divergence (mean and max over the run; ``lagfluid.metrics`` definitions);
@@ -31,8 +31,8 @@ from hydra import compose, initialize_config_dir
 from benchmarks.provenance import markdown, provenance
 from lagfluid.data.store import read_trajectory
 from lagfluid.metrics import chamfer_distance
-from lagfluid.rollout import simulate
 from lagfluid.run import CONF_DIR
+from lagfluid.simulate import simulate
 
 RESULTS = Path(__file__).resolve().parent / "results"
 

@@ -24,7 +24,8 @@ import torch
 from hydra import compose, initialize_config_dir
 
 from benchmarks.provenance import markdown, provenance
-from lagfluid.rollout import build_initial_state, build_simulator, rollout
+from lagfluid.config import build_initial_state, build_simulator
+from lagfluid.rollout import rollout
 from lagfluid.run import CONF_DIR
 
 RESULTS = Path(__file__).resolve().parent / "results"

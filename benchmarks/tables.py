@@ -71,7 +71,8 @@ from lagfluid.errors import ConfigError
 from lagfluid.evaluate import evaluate
 from lagfluid.models.fgn_simulator import SHIPPED_WEIGHTS
 from lagfluid.registry import available_simulators
-from lagfluid.rollout import Guard, build_initial_state, build_simulator, rollout
+from lagfluid.config import build_initial_state, build_simulator
+from lagfluid.rollout import Guard, rollout
 from lagfluid.run import CONF_DIR
 
 log = logging.getLogger("benchmarks.tables")

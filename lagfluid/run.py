@@ -14,7 +14,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import hydra
-from omegaconf import DictConfig
+from omegaconf import DictConfig, open_dict
 
 from lagfluid.errors import LagfluidError
 
@@ -67,13 +67,19 @@ def _register_plugin_configs() -> None:
 
 
 def dispatch(cfg: DictConfig) -> None:
-    """Run the task named by ``cfg.task``."""
+    """Run the task named by ``cfg.task``; a multirun job writes into its own folder under ``out_dir``."""
+    from lagfluid.config import multirun_out_dir
+
+    job_dir = multirun_out_dir(cfg)
+    if job_dir is not None:
+        with open_dict(cfg):
+            cfg.out_dir = str(job_dir)
     if cfg.task == "simulate":
-        from lagfluid.rollout import simulate
+        from lagfluid.simulate import simulate
 
         simulate(cfg)
     elif cfg.task == "generate":
-        from lagfluid.data.generate import generate
+        from lagfluid.generate import generate
 
         generate(cfg)
     elif cfg.task == "train":

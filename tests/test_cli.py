@@ -53,7 +53,7 @@ def test_struct_mode_rejects_typos():
 @pytest.mark.parametrize("model", available_models())
 @pytest.mark.parametrize("scene", _group_names("scene"))
 def test_every_model_and_scene_composes_and_instantiates(model, scene, request):
-    from lagfluid.rollout import build_initial_state, build_simulator
+    from lagfluid.config import build_initial_state, build_simulator
 
     # only the file scene and the authors' weights need ../shared; the other combinations run without it
     extra = [f"scene.path={request.getfixturevalue('authors_dam_grid')}"] if scene == "file" else []
@@ -72,7 +72,7 @@ def test_every_model_and_scene_composes_and_instantiates(model, scene, request):
 
 
 def test_corrected_solver_profile_composes_over_the_authors_one(tmp_path):
-    from lagfluid.rollout import simulate
+    from lagfluid.simulate import simulate
 
     authors, corrected = _compose("solver=mps"), _compose("solver=mps_corrected")
     assert authors.solver.pressure_gradient == "minimum" and authors.solver.re_laplacian == 3.1
@@ -88,8 +88,8 @@ def test_corrected_solver_profile_composes_over_the_authors_one(tmp_path):
 
 
 def test_file_scene_without_path_is_a_clear_error():
+    from lagfluid.config import build_initial_state
     from lagfluid.errors import SceneError
-    from lagfluid.rollout import build_initial_state
 
     with pytest.raises(SceneError, match="needs the option path"):
         build_initial_state(_compose("scene=file"))
@@ -97,7 +97,7 @@ def test_file_scene_without_path_is_a_clear_error():
 
 def test_debug_experiment_writes_the_three_outputs(tmp_path):
     from lagfluid.data.store import read_trajectory
-    from lagfluid.rollout import simulate
+    from lagfluid.simulate import simulate
 
     cfg = _compose("experiment=debug", "steps=4", "write_every=2", f"out_dir={tmp_path}")
     metrics = simulate(cfg)
@@ -113,7 +113,7 @@ def test_debug_experiment_writes_the_three_outputs(tmp_path):
 def test_guard_stop_keeps_what_was_written_and_says_why(tmp_path):
     from lagfluid.data.store import read_trajectory
     from lagfluid.errors import RolloutError
-    from lagfluid.rollout import simulate
+    from lagfluid.simulate import simulate
 
     # dt = 0.05 s: after two steps of free fall |v| dt / l0 > 0.5, so the Courant guard fires.
     cfg = _compose("experiment=debug", "dt=0.05", "steps=10", f"out_dir={tmp_path}")
@@ -165,7 +165,7 @@ def test_cli_guard_stop_is_one_clear_line(tmp_path):
 )
 def test_bad_config_values_are_lagfluid_errors_naming_the_value(override, message, tmp_path):
     from lagfluid.errors import LagfluidError
-    from lagfluid.rollout import simulate
+    from lagfluid.simulate import simulate
 
     with pytest.raises(LagfluidError, match=message):
         simulate(_compose("experiment=debug", override, f"out_dir={tmp_path}"))
@@ -175,17 +175,17 @@ def test_a_crash_mid_run_is_recorded_as_incomplete(tmp_path):
     from lagfluid.data.store import read_trajectory
     from lagfluid.models.mps_simulator import build_mps
     from lagfluid.registry import _REGISTERED, register_simulator
-    from lagfluid.rollout import simulate
+    from lagfluid.simulate import simulate
 
     def broken(cfg):
         sim = build_mps(cfg)
         step, calls = sim.step, []
 
-        def failing_step(state):
+        def failing_step(state, **options):
             calls.append(1)
             if len(calls) == 3:
                 raise RuntimeError("disk on fire")
-            return step(state)
+            return step(state, **options)
 
         sim.step = failing_step
         return sim

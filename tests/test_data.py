@@ -21,16 +21,11 @@ from lagfluid.data.datasets import (
     TrajectoryWindows,
     load_metadata,
 )
-from lagfluid.data.generate import (
-    RunningStats,
-    dataset_statistics,
-    generate,
-    read_scene_info,
-    scene_path,
-    split_counts,
-)
+from lagfluid.data.layout import read_scene_info, scene_path, split_counts
+from lagfluid.data.statistics import RunningStats, dataset_statistics
 from lagfluid.data.store import TrajectoryFileError, read_trajectory
 from lagfluid.errors import LagfluidError
+from lagfluid.generate import generate
 from lagfluid.neighbors import radius_graph
 from lagfluid.physics import operators as ops
 from lagfluid.physics.stages import SolverSettings, lattice_constants
@@ -310,7 +305,7 @@ def test_resume_regenerates_only_what_is_missing(dataset, tmp_path):
 
 
 def test_solver_keys_added_later_keep_old_fingerprints_at_their_neutral_value():
-    from lagfluid.data.generate import DataSpec
+    from lagfluid.generate import DataSpec
     from lagfluid.physics.stages import NEUTRAL_SOLVER_KEYS
 
     spec = DataSpec.from_config(_compose(*TINY))

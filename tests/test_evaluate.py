@@ -181,6 +181,11 @@ class _Exploding:
     """A plugin-style simulator (no intermediates): MPS whose velocities turn NaN at step 2."""
 
     name = "exploding"
+    dt = None
+    history_length = 0
+    parameters = 0
+    last_info: dict = {}
+    last_fields = None
 
     def __init__(self, cfg):
         from lagfluid.models.mps_simulator import build_mps
@@ -191,10 +196,10 @@ class _Exploding:
     def last_timings(self):
         return self.inner.last_timings
 
-    def reset(self, state):
+    def reset(self, state, history=()):
         self.inner.reset(state)
 
-    def step(self, state):
+    def step(self, state, *, record=False):
         new = self.inner.step(state)
         if new.step >= 2:
             new.vel[0] = float("nan")

@@ -11,14 +11,15 @@ import yaml
 from hydra import compose, initialize_config_dir
 from torch_geometric.data import Batch, Data
 
-from lagfluid.data.generate import generate
+from lagfluid.config import build_initial_state, build_simulator
 from lagfluid.errors import ConfigError, LagfluidError
+from lagfluid.generate import generate
 from lagfluid.models import fgn as fgn_mod
 from lagfluid.models.checkpoint import CheckpointError, build_network, load_network, read_checkpoint
 from lagfluid.models.fgn_original import load_original_network
 from lagfluid.physics.learned import compact_nodes
-from lagfluid.rollout import build_initial_state, build_simulator, simulate
 from lagfluid.run import CONF_DIR
+from lagfluid.simulate import simulate
 from lagfluid.state import ParticleType
 from lagfluid.train import StageTask, learning_rate, train
 
@@ -346,14 +347,13 @@ def test_learned_acceleration_is_what_the_scheme_integrates(trained):
     )
     state = build_initial_state(cfg)
     sim = build_simulator(cfg)
-    sim.record_intermediates = True
     state = sim.step(state)
-    nxt = sim.step(state)
+    nxt = sim.step(state, record=True)
     f, nf, dt = sim.last_fields, state.n_fluid, state.params.dt
     torch.testing.assert_close(
-        (f["vel_star"] - state.vel[:nf]) / dt, f["advection_acceleration"], atol=1e-3, rtol=1e-4
+        (f.vel_star - state.vel[:nf]) / dt, f.advection_acceleration, atol=1e-3, rtol=1e-4
     )
-    torch.testing.assert_close(f["pos_star"], state.pos[:nf] + f["vel_star"] * dt)
+    torch.testing.assert_close(f.pos_star, state.pos[:nf] + f.vel_star * dt)
     assert torch.isfinite(nxt.pos).all()
 
 

@@ -7,6 +7,7 @@ import pytest
 import torch
 from hydra import compose, initialize_config_dir
 
+from lagfluid.config import build_initial_state, build_simulator
 from lagfluid.metrics import (
     MetricInputError,
     chamfer_distance,
@@ -23,7 +24,6 @@ from lagfluid.metrics import (
     summarize,
 )
 from lagfluid.physics.stages import SolverSettings
-from lagfluid.rollout import build_initial_state, build_simulator
 from lagfluid.run import CONF_DIR
 from lagfluid.state import ParticleState
 
@@ -145,14 +145,13 @@ def mps_pressure_step():
     sim.reset(state)
     for _ in range(3):
         state = sim.step(state)
-    sim.record_intermediates = True
-    sim.step(state)
+    sim.step(state, record=True)
     return sim, state, sim.last_fields, SolverSettings.from_config(cfg.solver)
 
 
 def _state_at_pressure_stage(state: ParticleState, fields: dict) -> ParticleState:
     pos, vel, nf = state.pos.clone(), state.vel.clone(), state.n_fluid
-    pos[:nf], vel[:nf] = fields["pos_collided"], fields["vel_collided"]
+    pos[:nf], vel[:nf] = fields.pos_collided, fields.vel_collided
     return ParticleState(pos=pos, vel=vel, ptype=state.ptype, params=state.params, check=False)
 
 
@@ -161,8 +160,8 @@ def test_ppe_residual_of_the_solver_pressure_is_its_tolerance(mps_pressure_step)
     ctx = exact_context(_state_at_pressure_stage(state, fields), settings, mps_constants(state, settings))
     system, _ = exact_ppe(ctx)
     # the same system as the solver's: the same unknowns, and its own reported residual (relative, float64)
-    assert torch.equal(system.scatter(torch.ones(system.num_unknowns)).bool(), fields["ppe_solved"])
-    residual = ppe_relative_residual(ctx, fields["pressure_unclamped"])
+    assert torch.equal(system.scatter(torch.ones(system.num_unknowns)).bool(), fields.ppe_solved)
+    residual = ppe_relative_residual(ctx, fields.pressure_unclamped)
     assert residual == pytest.approx(sim.last_info["ppe_residual"], rel=1e-3, abs=1e-12)
     assert residual < 1e-6
 
@@ -193,7 +192,7 @@ def test_ppe_residual_of_scaled_and_zero_pressure_by_hand(mps_pressure_step):
     # exact solution p*: ||A (1 + a) p* - b|| / ||b|| = |a| ||b|| / ||b||; p = 0 gives ||b|| / ||b|| = 1
     _, state, fields, settings = mps_pressure_step
     ctx = exact_context(_state_at_pressure_stage(state, fields), settings, mps_constants(state, settings))
-    p = fields["pressure_unclamped"]
+    p = fields.pressure_unclamped
     assert ppe_relative_residual(ctx, 1.25 * p) == pytest.approx(0.25, abs=1e-6)
     assert ppe_relative_residual(ctx, 0.5 * p) == pytest.approx(0.5, abs=1e-6)
     assert ppe_relative_residual(ctx, torch.zeros_like(p)) == pytest.approx(1.0, rel=1e-12)

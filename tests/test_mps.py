@@ -146,18 +146,16 @@ def test_recorded_intermediates_invert_the_update_exactly():
     # Training targets must be the exact inverse of the update the rollout applies (DESIGN 5).
     state = build_scene("dam", fluid_size=[5, 5, 6], tank_size=[12, 6], dtype=torch.float64)
     sim = mps()
-    sim.record_intermediates = True
-    new = sim.step(state)
+    new = sim.step(state, record=True)
     f, nf, dt = sim.last_fields, state.n_fluid, state.params.dt
-    torch.testing.assert_close(f["vel_star"], state.vel[:nf] + f["advection_acceleration"] * dt)
-    torch.testing.assert_close(f["pos_star"], state.pos[:nf] + f["vel_star"] * dt)
-    torch.testing.assert_close(f["pos_collided"], f["pos_star"] + (f["vel_collided"] - f["vel_star"]) * dt)
-    torch.testing.assert_close(new.pressure, f["pressure_unclamped"].clamp_min(0))
-    assert f["number_density"].shape == (state.num_particles,) and f["ppe_solved"].dtype == torch.bool
-    assert not bool((f["ppe_solved"] & f["free_surface"]).any())
-    sim.record_intermediates = False
+    torch.testing.assert_close(f.vel_star, state.vel[:nf] + f.advection_acceleration * dt)
+    torch.testing.assert_close(f.pos_star, state.pos[:nf] + f.vel_star * dt)
+    torch.testing.assert_close(f.pos_collided, f.pos_star + (f.vel_collided - f.vel_star) * dt)
+    torch.testing.assert_close(new.pressure, f.pressure_unclamped.clamp_min(0))
+    assert f.number_density.shape == (state.num_particles,) and f.ppe_solved.dtype == torch.bool
+    assert not bool((f.ppe_solved & f.free_surface).any())
     sim.step(new)
-    assert sim.last_fields == {}
+    assert sim.last_fields is None
 
 
 @pytest.mark.parametrize("fluid_only", [False, True])

@@ -1,4 +1,4 @@
-"""PyG datasets over a generated dataset directory (:mod:`lagfluid.data.generate`).
+"""PyG datasets over a generated dataset directory (layout: :mod:`lagfluid.data.layout`).
 
 Every item is a :class:`torch_geometric.data.Data` *without edges*: each model builds its own radius graph
 (FGN's advection, collision and pressure nets use 1.86, 0.92 and 1.705 l0). Batches from
@@ -52,7 +52,7 @@ import torch
 from scipy.spatial import cKDTree
 from torch_geometric.data import Data, Dataset
 
-from lagfluid.data.generate import (
+from lagfluid.data.layout import (
     DATASET_FORMAT,
     GROUP,
     METADATA_FILE,
@@ -302,7 +302,7 @@ class PressureSamples(_SceneDataset):
 class CollisionSamples(_SceneDataset):
     """Collision-net samples: relative positions and velocities before -> velocity change (paper A.2).
 
-    From the collision-only particle systems of every scene (see :mod:`lagfluid.data.generate`). Item:
+    From the collision-only particle systems of every scene (see :mod:`lagfluid.data.layout`). Item:
     ``pos`` x* (N, 3), ``vel`` v* (N, 3; 0 on the floor), ``ptype`` (N,), ``y`` v** - v* (Nf, 3);
     graph-level ``restitution``, ``dt``, ``l0``, ``scene``, ``system`` (1,). The net's edge inputs are
     ``vel[j] - vel[i]`` and ``pos[j] - pos[i]`` over a radius graph at ``re_collision * l0``.

@@ -107,6 +107,16 @@ class TrajectoryWriter:
         self.frames += 1
         self.file.flush()
 
+    def append_state(self, state: Any) -> None:
+        """Append the fluid rows of a :class:`~lagfluid.state.ParticleState` as one frame."""
+        nf = state.n_fluid
+        self.append(
+            state.time,
+            state.pos[:nf].detach().cpu().numpy(),
+            state.vel[:nf].detach().cpu().numpy(),
+            state.pressure[:nf].detach().cpu().numpy(),
+        )
+
     def close(self, complete: bool = True, stop_reason: str | None = None) -> Path:
         """Mark the trajectory complete (or not, with the reason), close and rename to the final path."""
         if self.file.id.valid:

@@ -1,13 +1,16 @@
-"""The interface every simulator implements.
+"""The interface every simulator implements, MPS included.
 
-MPS included, so that one rollout loop, one metrics module and one benchmark harness measure them all on
-equal terms.
+One rollout loop (:func:`lagfluid.rollout.rollout`), one metrics module and one benchmark harness measure
+every simulator on equal terms through it. A plugin (``baselines/``, a third-party package) implements it
+and registers a factory in the ``lagfluid.simulators`` entry-point group; nothing else in lagfluid names it.
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Any, Protocol, runtime_checkable
 
+from lagfluid.errors import ConfigError
 from lagfluid.state import ParticleState
 
 
@@ -17,12 +20,27 @@ class Simulator(Protocol):
 
     Attributes:
         name: registry name, written into every output.
+        dt: the simulator's own time step in s (a model trained on frames ``k`` solver steps apart steps by
+            that), or None to step by the scene's ``state.params.dt``. The rollout tasks run the scene at
+            this ``dt`` and record it in every output.
+        history_length: how many earlier states :meth:`reset` wants (0 for one-step schemes; GNS: 5).
+        parameters: trainable parameters (0 for MPS); reported beside every timing.
         last_timings: seconds per named stage of the last :meth:`step` (e.g. ``neighbors``, ``advection``,
-            ``collision``, ``pressure_assembly``, ``pressure_solve``, ``correction``).
+            ``pressure_solve``; an end-to-end model may report just ``network``).
         last_info: per-step diagnostics of the last step (e.g. ``ppe_iterations``, ``ppe_residual``).
+        last_fields: the intermediates of the last step when it was asked to ``record`` them, as an
+            instance of the simulator's own dataclass (``SplitStepFields`` for the split-step scheme);
+            None otherwise.
     """
 
     name: str
+    dt: float | None
+    history_length: int
+
+    @property
+    def parameters(self) -> int:
+        """Trainable parameters."""
+        ...
 
     @property
     def last_timings(self) -> dict[str, float]:
@@ -30,15 +48,55 @@ class Simulator(Protocol):
         ...
 
     last_info: dict[str, float]
+    last_fields: Any | None
 
-    def reset(self, state: ParticleState) -> None:
-        """Prepare for a new rollout starting at ``state`` (per-scene constants, neighbour lists)."""
+    def reset(self, state: ParticleState, history: Sequence[ParticleState] = ()) -> None:
+        """Prepare for a rollout starting at ``state``.
+
+        Args:
+            state: the first state (per-scene constants, neighbour lists are set up for it).
+            history: up to ``history_length`` earlier states, oldest first, spaced by the simulator's time
+                step (e.g. frames ``t-5 .. t-1`` of a trajectory when the rollout starts at frame ``t``);
+                empty for a scene built from scratch, where the simulator decides what it assumes.
+        """
         ...
 
-    def step(self, state: ParticleState) -> ParticleState:
-        """Return the state one time step ``state.params.dt`` later; never modifies ``state``."""
+    def step(self, state: ParticleState, *, record: bool = False) -> ParticleState:
+        """Return the state one time step later; never modifies ``state``.
+
+        Args:
+            state: the state at ``t``.
+            record: keep this step's intermediates in ``last_fields`` (costs copies; off for timed runs).
+        """
         ...
 
     def attributes(self) -> dict[str, Any]:
-        """Scalars worth storing with a rollout (reference densities, parameter counts, ...)."""
+        """Scalars worth storing with a rollout (reference densities, where the weights came from, ...)."""
         ...
+
+
+_REQUIRED = ("name", "dt", "history_length", "parameters", "last_timings", "last_info", "last_fields")
+
+
+def check_simulator(simulator: object, origin: str) -> Simulator:
+    """Return ``simulator`` if it implements :class:`Simulator`, else raise naming what it lacks.
+
+    Args:
+        simulator: what a registered factory returned.
+        origin: where it came from (the model name), for the message.
+
+    Raises:
+        ConfigError: a missing attribute or method, or a bad ``dt``/``history_length``.
+    """
+    missing = [a for a in (*_REQUIRED, "reset", "step", "attributes") if not hasattr(simulator, a)]
+    if missing:
+        raise ConfigError(
+            f"model '{origin}' built a {type(simulator).__name__} that lacks {', '.join(missing)} "
+            "(see lagfluid.models.simulator.Simulator)"
+        )
+    dt, history = simulator.dt, simulator.history_length
+    if dt is not None and not (isinstance(dt, (int, float)) and not isinstance(dt, bool) and dt > 0):
+        raise ConfigError(f"model '{origin}': dt must be a time step > 0 (s) or None, got {dt!r}")
+    if not (isinstance(history, int) and history >= 0):
+        raise ConfigError(f"model '{origin}': history_length must be an integer >= 0, got {history!r}")
+    return simulator  # type: ignore[return-value]

@@ -11,19 +11,19 @@ One step (paper A.1 eqs. 11-18 and A.2 eqs. 24-28; authors' code for the positio
     a_p    = -grad_min(p) / rho               MPS minimum-pressure gradient, always exact
     v^n+1  = v** + a_p dt ;  x^n+1 = x** + a_p dt^2
 
-The paper's eq. 28 writes ``x^{n+1} = x* + v^{n+1} dt``, which would move each particle twice in one step;
-the authors' code applies ``x += a_p dt^2`` (i.e. ``x^{n+1} = x^n + v^{n+1} dt`` up to the collision
-shift), which we follow. Training targets are the exact inverse of these updates (``a = (v* - v^n)/dt``),
-so one-step training and rollout agree by construction.
+The updates and their inverses (the training targets) are :mod:`lagfluid.integrate`'s, so one-step
+training and rollout agree by construction; the position update of the correction follows the authors'
+code (``x += a_p dt^2``), not the paper's eq. 28 (see there).
 
 Only fluid particles move; boundary rows are static and never integrated.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Any, Protocol
@@ -31,7 +31,7 @@ from typing import Any, Protocol
 import torch
 from torch import Tensor
 
-from lagfluid import pair_kernels
+from lagfluid import integrate, pair_kernels
 from lagfluid.errors import ConfigError
 from lagfluid.neighbor_list import Graph, VerletNeighborList
 from lagfluid.neighbors import edge_vectors
@@ -250,6 +250,36 @@ class StageTimer:
 
 
 @dataclass
+class SplitStepFields:
+    """The intermediates of one split step: the inputs and labels of one-step training samples (paper A.2).
+
+    Fluid rows (N_fluid, 3) unless noted; ``None`` where the stage that makes a field did not run.
+
+    Attributes:
+        advection_acceleration: ``a`` of the advection stage.
+        pos_star, vel_star: ``x*``, ``v*`` after advection (the collision stage's input).
+        pos_collided, vel_collided: ``x**``, ``v**`` after collision (the pressure stage's input).
+        pressure_unclamped: (N,) the pressure stage's output before the ``p >= 0`` clamp.
+        number_density: (N,) ``n`` at ``x**`` (radius ``re_density``), from the pressure stage.
+        free_surface: (N,) bool, ``n < beta n0``.
+        ppe_solved: (N,) bool, the pressure unknowns (non-dummy, not on the free surface).
+    """
+
+    advection_acceleration: Tensor | None = None
+    pos_star: Tensor | None = None
+    vel_star: Tensor | None = None
+    pos_collided: Tensor | None = None
+    vel_collided: Tensor | None = None
+    pressure_unclamped: Tensor | None = None
+    number_density: Tensor | None = None
+    free_surface: Tensor | None = None
+    ppe_solved: Tensor | None = None
+
+
+_FIELD_NAMES = frozenset(f.name for f in dataclasses.fields(SplitStepFields))
+
+
+@dataclass
 class StepContext:
     """What every stage of one step may read: the state at ``x^n``, settings, constants and neighbours.
 
@@ -260,8 +290,8 @@ class StepContext:
         neighbors: the Verlet list; ask it for graphs through :meth:`graph`.
         timer: per-stage timings of this step.
         info: per-step diagnostics a stage wants reported (PPE iterations, residual, ...).
-        fields: per-particle arrays of the step, filled only when the simulator records intermediates
-            (dataset generation); stages add theirs with :meth:`record`.
+        fields: the step's intermediates, kept only when the step was asked to record them (dataset
+            generation, one-step errors); stages add theirs with :meth:`record`.
     """
 
     state: ParticleState
@@ -270,7 +300,7 @@ class StepContext:
     neighbors: VerletNeighborList
     timer: StageTimer
     info: dict[str, float] = field(default_factory=dict)
-    fields: dict[str, Tensor] | None = None
+    fields: SplitStepFields | None = None
     # (the positions tensor asked about, its version, a copy of its values, the graph, fluid targets only)
     _full: tuple[Tensor, int, Tensor, Graph, bool] | None = None
     _within: dict[tuple[float, bool], Graph] = field(default_factory=dict)
@@ -290,9 +320,17 @@ class StepContext:
         return factor * self.params.l0
 
     def record(self, **arrays: Tensor) -> None:
-        """Keep per-particle arrays of this step when intermediates are being recorded (else no-op)."""
+        """Keep arrays of this step as :class:`SplitStepFields` when the step records them (else no-op).
+
+        Raises:
+            ConfigError: a name that is not a field of :class:`SplitStepFields` (a stage's typo).
+        """
+        unknown = set(arrays) - _FIELD_NAMES
+        if unknown:
+            raise ConfigError(f"unknown step field(s) {sorted(unknown)}; declared: {sorted(_FIELD_NAMES)}")
         if self.fields is not None:
-            self.fields.update({k: v.detach().clone() for k, v in arrays.items()})
+            for name, value in arrays.items():
+                setattr(self.fields, name, value.detach().clone())
 
     def graph(self, pos: Tensor, factor: float, fluid_targets_only: bool = False) -> Graph:
         """All pairs within ``factor * l0`` at positions ``pos`` (N, 3), sorted by target.
@@ -367,11 +405,19 @@ class PressureStage(Protocol):
 class SplitStepSimulator:
     """The advect -> collide -> project -> correct scheme with any mix of exact and learned stages.
 
+    Implements :class:`lagfluid.models.simulator.Simulator`: it steps by the scene's ``dt`` (``dt = None``),
+    needs no history (each step reads ``x^n, v^n`` only) and has no trainable parameters of its own
+    (learned-stage simulators override :attr:`parameters`).
+
     Args:
         name: simulator name (written into outputs).
         settings: scheme coefficients.
         advection, collision, pressure: stage implementations; ``None`` skips the stage.
     """
+
+    dt: float | None = None
+    history_length: int = 0
+    fields_type = SplitStepFields
 
     def __init__(
         self,
@@ -390,12 +436,20 @@ class SplitStepSimulator:
         self.neighbors: VerletNeighborList | None = None
         self.timer = StageTimer()
         self.last_info: dict[str, float] = {}
-        self.record_intermediates = False
-        self.last_fields: dict[str, Tensor] = {}
+        self.last_fields: SplitStepFields | None = None
 
     # ------------------------------------------------------------------ Simulator interface
-    def reset(self, state: ParticleState) -> None:
-        """Compute the per-scene constants and a fresh neighbour list for ``state``."""
+    @property
+    def parameters(self) -> int:
+        """Trainable parameters of the stages: 0 for the exact scheme."""
+        return 0
+
+    def reset(self, state: ParticleState, history: Sequence[ParticleState] = ()) -> None:
+        """Compute the per-scene constants and a fresh neighbour list for ``state``.
+
+        ``history`` (earlier states) is accepted as every simulator's is and not needed: the scheme is
+        one-step.
+        """
         if self.settings.n0_from == "lattice":
             self.constants = lattice_constants(state.params.l0, self.settings, state.params.dim)
         else:
@@ -435,14 +489,12 @@ class SplitStepSimulator:
         return {"n0": self.constants.n0, "n0_lap": self.constants.n0_lap, "lambda": self.constants.lam}
 
     @torch.no_grad()
-    def step(self, state: ParticleState) -> ParticleState:
+    def step(self, state: ParticleState, *, record: bool = False) -> ParticleState:
         """Advance ``state`` by one time step ``state.params.dt``; returns a new state.
 
-        With ``record_intermediates = True`` the step also leaves the intermediate fields in
-        ``last_fields``: ``advection_acceleration``, ``pos_star``, ``vel_star``, ``pos_collided``,
-        ``vel_collided`` (N_fluid, ...) and, from the exact pressure stage, ``number_density``,
-        ``free_surface``, ``ppe_solved`` (N,) and ``pressure_unclamped`` (N,). These are the inputs and
-        labels of the one-step training samples (paper A.2).
+        With ``record`` the step also leaves its intermediates in ``last_fields`` (a
+        :class:`SplitStepFields`; else ``last_fields`` is None): the inputs and labels of the one-step
+        training samples (paper A.2) and of the one-step errors of ``task=evaluate``.
         """
         if self.constants is None or self.neighbors is None:
             self.reset(state)
@@ -454,27 +506,27 @@ class SplitStepSimulator:
             self.constants,
             self.neighbors,
             self.timer,
-            fields={} if self.record_intermediates else None,
+            fields=SplitStepFields() if record else None,
         )
         nf, dt, device = state.n_fluid, state.params.dt, state.device
+        # Updated in place row-slice by row-slice: the step context's graph cache keys on this tensor.
         pos, vel = state.pos.clone(), state.vel.clone()
 
         if self.advection is not None:
             acc = self.advection(ctx, pos, vel)
             with self.timer("advection", device):
-                vel[:nf] += acc * dt
-                pos[:nf] += vel[:nf] * dt
+                pos[:nf], vel[:nf] = integrate.advect(pos[:nf], vel[:nf], acc, dt)
             ctx.record(advection_acceleration=acc)
         else:
-            pos[:nf] += vel[:nf] * dt
+            pos[:nf] = integrate.drift(pos[:nf], vel[:nf], dt)
         ctx.record(pos_star=pos[:nf], vel_star=vel[:nf])
 
         if self.collision is not None:
             v_star = vel[:nf].clone()
             v_new = self.collision(ctx, pos, vel)
             with self.timer("collision", device):
+                pos[:nf] = integrate.collide(pos[:nf], v_star, v_new, dt)
                 vel[:nf] = v_new
-                pos[:nf] += (v_new - v_star) * dt
         ctx.record(pos_collided=pos[:nf], vel_collided=vel[:nf])
 
         pressure = torch.zeros_like(state.pressure)
@@ -486,12 +538,11 @@ class SplitStepSimulator:
                 if self.settings.clamp_negative_pressure:
                     pressure = pressure.clamp_min(0.0)
                 acc_p = self.pressure_acceleration(ctx, pos, pressure, g_grad)
-                vel[:nf] += acc_p * dt
-                pos[:nf] += acc_p * dt * dt
+                pos[:nf], vel[:nf] = integrate.correct(pos[:nf], vel[:nf], acc_p, dt)
 
         ctx.info["list_rebuilds"] = float(self.neighbors.builds - builds)
         self.last_info = dict(ctx.info)
-        self.last_fields = ctx.fields or {}
+        self.last_fields = ctx.fields
         return ParticleState(
             pos=pos,
             vel=vel,

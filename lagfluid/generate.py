@@ -25,55 +25,8 @@ fingerprint is an error rather than silently mixed into the dataset. A scene sto
 (NaN, Courant number, a particle leaving the tank) is kept as ``scene_00007.failed.h5`` for inspection;
 the other scenes still run and the generation then fails naming it.
 
-Layout of a scene file (``format="lagfluid"``, ``format_version=1``; ``Nf`` fluid and ``Nb`` boundary
-particles, ``T`` trajectory frames, ``S = ceil(steps / k)`` samples for ``k = sample_every``)::
-
-    /00000                  the trajectory, exactly as lagfluid.data.store writes rollouts: frames at
-                            steps 0, k, 2k, ... and the last step (T = S + 1)
-        time (T,) f8, position (T, Nf, 3) f4, velocity (T, Nf, 3) f4, pressure (T, Nf) f4 (clamped, >= 0)
-        boundary_position (Nb, 3) f4, boundary_type (Nb,) i1     static, stored once (2 wall, 3 dummy)
-        attrs: dt, l0, gravity (3,), viscosity, density, dim, seed, scene_index, scene, scene_options,
-               bounds (2, 3), n0, n0_lap, lambda, fingerprint, steps, sample_every, n_fluid, config,
-               version, git_commit, created, complete, wall_time_s, step_time_median_s, ...
-    /samples                one-step training samples (paper A.2) at solver steps n = 0, k, 2k, ... < steps
-        step (S,) i8                 solver step n of sample s (= s k)
-        frame (S,) i8                trajectory frame holding x^n and v^n (= s)
-        advection/acceleration (S, Nf, 3) f4
-                                     label a = (v* - v^n) / dt = nu lap(v^n) + g; the inputs are
-                                     /00000/position[frame], velocity[frame], the boundary, g and nu
-        pressure/position (S, Nf, 3) f4   x**: fluid positions after advection and collision
-        pressure/velocity (S, Nf, 3) f4   v**: the pressure stage's input velocities
-        pressure/offsets (S + 1,) i8      sample s owns rows offsets[s]:offsets[s + 1] of the ragged arrays
-        pressure/index (M,) i4            particle row of each PPE unknown: < Nf fluid, else boundary
-                                          row index - Nf; the unknowns are the non-dummy particles that
-                                          are not on the free surface (n >= beta n0)
-        pressure/number_density (M,) f4   n at x** (radius re_density, all particle types counted)
-        pressure/pressure (M,) f4         label: the PPE solution (before the p >= 0 clamp)
-        collision/position (C, Nc, 3) f4  x* of the collision-only particle system (input)
-        collision/velocity (C, Nc, 3) f4  v* (input)
-        collision/delta_velocity (C, Nc, 3) f4   label v** - v* given by the exact CollisionRule
-        collision/system (C,) i8, collision/step (C,) i8   which system, which of its steps
-        collision/boundary_position (Ncb, 3) f4, collision/boundary_type (Ncb,) i1   its static floor
-        attrs: format_version (samples layout), count, dt, complete; collision/: restitution,
-               re_collision, num_systems, steps
-
-The samples satisfy the update of :mod:`lagfluid.physics.stages` exactly (same float32 operations):
-``v* = v^n + a dt``, ``x* = x^n + v* dt``, ``x** = x* + (v** - v*) dt``. So the in-scene collision stage's
-samples ``(x*, v*) -> v**`` are there too, without storing them twice.
-
-The collision system (paper A.2: "another particle system that is updated only based on elastic
-collision rule") is, per scene, ``collision.num_systems`` jittered fluid blocks above a wall floor with
-random velocities, each advanced ``collision.steps`` times by a split-step simulator whose only stage is
-:class:`~lagfluid.physics.mps.CollisionRule` (``x* = x + v dt``, then the rule); every step is a sample.
-
-``metadata.json`` (LagrangeBench-style keys plus ours): ``bounds`` ([[lo, hi]] per axis, m, union over the
-scenes), ``dt``, ``dim``, ``default_connectivity_radius`` (m: ``re_laplacian * l0`` = 3.1 l0, the largest
-radius of the MPS operators), ``periodic_boundary_conditions``, ``sequence_length`` (frames per scene),
-``write_every``, ``vel_mean``/``vel_std``/``acc_mean``/``acc_std`` (LagrangeBench units: first and second
-differences of positions between uniformly spaced frames, m per frame), ``statistics`` (per feature:
-mean, std, min, max, count), ``splits`` (file lists), ``counts``, ``scenes``, the solver, materials and
-collision settings, ``version``, ``git_commit``, ``generation_time_s``. Every statistic is computed from
-the **train** split only (DESIGN convention 6).
+The scene-file layout is :mod:`lagfluid.data.layout`'s; the statistics in ``metadata.json`` are
+:mod:`lagfluid.data.statistics`'.
 """
 
 from __future__ import annotations
@@ -84,7 +37,7 @@ import logging
 import math
 import os
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from statistics import median
@@ -96,51 +49,37 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 import lagfluid
-from lagfluid.data.store import TrajectoryFileError, TrajectoryWriter, open_lagfluid_file
+from lagfluid import integrate
+from lagfluid.config import git_commit, run_attributes, scene_params
+from lagfluid.data.layout import (
+    DATASET_FORMAT,
+    GROUP,
+    METADATA_FILE,
+    SAMPLES_FORMAT_VERSION,
+    SPLITS,
+    SampleWriter,
+    append_rows,
+    appendable,
+    read_scene_info,
+    scene_path,
+    split_counts,
+    split_of,
+)
+from lagfluid.data.statistics import STATISTICS, dataset_statistics
+from lagfluid.data.store import TrajectoryFileError, TrajectoryWriter
 from lagfluid.errors import LagfluidError, RolloutError, SceneError
 from lagfluid.models.mps_simulator import build_mps
 from lagfluid.physics.mps import CollisionRule
 from lagfluid.physics.stages import SolverSettings, SplitStepSimulator, solver_identity
-from lagfluid.rollout import Guard, git_commit, rollout, run_attributes, scene_params
+from lagfluid.rollout import Guard, rollout
 from lagfluid.scenes import build_scene
 from lagfluid.state import ParticleState, ParticleType, SceneParams
 
-__all__ = [
-    "GROUP",
-    "METADATA_FILE",
-    "SAMPLES_FORMAT_VERSION",
-    "DataSpec",
-    "RunningStats",
-    "SceneInfo",
-    "collision_system",
-    "dataset_statistics",
-    "generate",
-    "generate_scene",
-    "read_scene_info",
-    "scene_path",
-    "split_counts",
-    "write_metadata",
-]
+__all__ = ["DataSpec", "collision_system", "generate", "generate_scene", "write_metadata"]
 
 log = logging.getLogger(__name__)
 
-GROUP = "00000"
-"""Trajectory group of a scene file (the one group a rollout file has)."""
-SAMPLES_FORMAT_VERSION = 1
-"""Version of the ``/samples`` layout (root attribute ``format_version`` is the trajectory format's)."""
-METADATA_FILE = "metadata.json"
-DATASET_FORMAT = "lagfluid-dataset"
-SCENE_DIR = "scenes"
-SPLITS = ("train", "valid", "test")
-_COMPRESS = {"compression": "gzip", "compression_opts": 4, "shuffle": True}
 
-
-def scene_path(out_dir: str | os.PathLike, index: int) -> Path:
-    """``out_dir/scenes/scene_00007.h5`` for ``index = 7``."""
-    return Path(out_dir) / SCENE_DIR / f"scene_{index:05d}.h5"
-
-
-# ------------------------------------------------------------------------------------------ configuration
 def _range(name: str, value: Any, positive: bool) -> tuple[float, float]:
     lo, hi = (float(v) for v in value)
     if not (math.isfinite(lo) and math.isfinite(hi) and lo <= hi) or (positive and lo <= 0):
@@ -297,127 +236,6 @@ class DataSpec:
         return hashlib.sha256(json.dumps(content, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
-def split_counts(num_scenes: int, fractions: dict[str, float]) -> dict[str, int]:
-    """Scenes per split: ``round(f n)`` valid and test scenes for fractions ``f``, the rest train.
-
-    Valid and test get at least one scene each when ``n >= 3`` and their fraction is > 0.
-
-    Raises:
-        LagfluidError: nothing would be left for training.
-    """
-    total = sum(fractions.values())
-    counts = {}
-    for split in ("valid", "test"):
-        f = fractions.get(split, 0.0) / total
-        n = round(f * num_scenes)
-        counts[split] = max(n, 1) if f > 0 and num_scenes >= 3 else n
-    counts["train"] = num_scenes - counts["valid"] - counts["test"]
-    if counts["train"] < 1:
-        raise LagfluidError(f"data.splits {fractions} leave no training scene out of {num_scenes}")
-    return {s: counts[s] for s in SPLITS}
-
-
-def split_of(num_scenes: int, fractions: dict[str, float]) -> list[str]:
-    """Split of every scene index: train first, then valid, then test (deterministic by index)."""
-    counts = split_counts(num_scenes, fractions)
-    return [s for s in SPLITS for _ in range(counts[s])]
-
-
-# ------------------------------------------------------------------------------------------ scene files
-@dataclass(frozen=True)
-class SceneInfo:
-    """What a finished scene file holds (read without loading its arrays).
-
-    Attributes:
-        path: the file.
-        attrs: trajectory-group attributes.
-        n_fluid: Nf.
-        n_boundary: Nb.
-        frames: T.
-        samples: S (advection and pressure samples).
-        collision_samples: C.
-        complete: the trajectory and the samples were finished.
-    """
-
-    path: Path
-    attrs: dict[str, Any]
-    n_fluid: int
-    n_boundary: int
-    frames: int
-    samples: int
-    collision_samples: int
-    complete: bool
-
-
-_REQUIRED = {
-    GROUP: ("time", "position", "velocity", "pressure", "boundary_position", "boundary_type"),
-    "samples": ("step", "frame"),
-    "samples/advection": ("acceleration",),
-    "samples/pressure": ("position", "velocity", "offsets", "index", "number_density", "pressure"),
-    "samples/collision": (
-        "position",
-        "velocity",
-        "delta_velocity",
-        "system",
-        "step",
-        "boundary_position",
-        "boundary_type",
-    ),
-}
-
-
-def _check_scene_file(f: h5py.File, path: Path) -> None:
-    """Raise :class:`TrajectoryFileError` unless ``f`` (format already checked) has a scene file's layout."""
-    for group, names in _REQUIRED.items():
-        if group not in f:
-            raise TrajectoryFileError(f"{path} lacks the group '/{group}': not a scene file of task=generate")
-        for name in names:
-            if name not in f[group]:
-                raise TrajectoryFileError(f"{path} lacks the array '/{group}/{name}'")
-    version = int(f["samples"].attrs.get("format_version", -1))
-    if version != SAMPLES_FORMAT_VERSION:
-        raise TrajectoryFileError(
-            f"{path} has samples format_version {version}; this lagfluid reads {SAMPLES_FORMAT_VERSION}"
-        )
-    g, s = f[GROUP], f["samples"]
-    t, nf = g["position"].shape[:2]
-    n = s["step"].shape[0]
-    shapes_ok = (
-        g["velocity"].shape == (t, nf, 3)
-        and g["pressure"].shape == (t, nf)
-        and s["frame"].shape == (n,)
-        and s["advection/acceleration"].shape == (n, nf, 3)
-        and s["pressure/position"].shape == (n, nf, 3)
-        and s["pressure/velocity"].shape == (n, nf, 3)
-        and s["pressure/offsets"].shape == (n + 1,)
-        and (n == 0 or int(s["frame"][-1]) < t)
-    )
-    if not shapes_ok:
-        raise TrajectoryFileError(f"{path}: arrays disagree in shape (T={t}, Nf={nf}, S={n})")
-
-
-def read_scene_info(path: str | os.PathLike) -> SceneInfo:
-    """Open a scene file, check its layout and return its sizes and attributes.
-
-    Raises:
-        TrajectoryFileError: missing, unreadable, another format or version, a missing group or array.
-    """
-    path = Path(path)
-    with open_lagfluid_file(path, "scene file") as f:
-        _check_scene_file(f, path)
-        g, s = f[GROUP], f["samples"]
-        return SceneInfo(
-            path=path,
-            attrs=dict(g.attrs),
-            n_fluid=int(g["position"].shape[1]),
-            n_boundary=int(g["boundary_position"].shape[0]),
-            frames=int(g["position"].shape[0]),
-            samples=int(s["step"].shape[0]),
-            collision_samples=int(s["collision/position"].shape[0]),
-            complete=bool(g.attrs.get("complete", False)) and bool(s.attrs.get("complete", False)),
-        )
-
-
 def _scene_done(path: Path, fingerprint: str) -> bool:
     """True for a finished scene file made with ``fingerprint``; False when it must be (re)generated.
 
@@ -442,102 +260,6 @@ def _scene_done(path: Path, fingerprint: str) -> bool:
             "use another data.out_dir or delete the file"
         )
     return True
-
-
-# ------------------------------------------------------------------------------------------ samples
-def _appendable(
-    group: h5py.Group, name: str, shape: tuple[int, ...], dtype: str, chunk: int = 0
-) -> h5py.Dataset:
-    """A dataset growing along axis 0: one sample per chunk for per-particle arrays, else ``chunk`` rows."""
-    chunks = (1, *[max(s, 1) for s in shape]) if shape else (chunk or 4096,)
-    return group.create_dataset(
-        name, (0, *shape), maxshape=(None, *shape), dtype=dtype, chunks=chunks, **_COMPRESS
-    )
-
-
-def _append(ds: h5py.Dataset, values: np.ndarray) -> None:
-    n = ds.shape[0]
-    ds.resize(n + values.shape[0], axis=0)
-    ds[n:] = values
-
-
-class _SampleWriter:
-    """Appends the one-step samples of a scene to ``/samples`` of the open scene file."""
-
-    def __init__(self, group: h5py.Group, n_fluid: int, dt: float) -> None:
-        self.group, self.n_fluid = group, n_fluid
-        group.attrs.update(format_version=SAMPLES_FORMAT_VERSION, dt=dt, complete=False, count=0)
-        self.step = _appendable(group, "step", (), "i8", 1024)
-        self.frame = _appendable(group, "frame", (), "i8", 1024)
-        adv, prs = group.create_group("advection"), group.create_group("pressure")
-        self.acc = _appendable(adv, "acceleration", (n_fluid, 3), "f4")
-        self.p_pos = _appendable(prs, "position", (n_fluid, 3), "f4")
-        self.p_vel = _appendable(prs, "velocity", (n_fluid, 3), "f4")
-        self.offsets = prs.create_dataset(
-            "offsets", data=np.zeros(1, np.int64), maxshape=(None,), chunks=(1024,)
-        )
-        self.index = _appendable(prs, "index", (), "i4", 1 << 16)
-        self.density = _appendable(prs, "number_density", (), "f4", 1 << 16)
-        self.pressure = _appendable(prs, "pressure", (), "f4", 1 << 16)
-        self.count = 0
-
-    def append(self, state: ParticleState, fields: dict[str, torch.Tensor]) -> None:
-        """Store the sample of the step that starts at ``state`` from the simulator's recorded fields."""
-
-        def np32(name: str) -> np.ndarray:
-            return fields[name].detach().cpu().numpy().astype(np.float32, copy=False)
-
-        solved = torch.nonzero(fields["ppe_solved"]).flatten().cpu().numpy()
-        _append(self.step, np.array([state.step], np.int64))
-        _append(self.frame, np.array([self.count], np.int64))
-        _append(self.acc, np32("advection_acceleration")[None])
-        _append(self.p_pos, np32("pos_collided")[None])
-        _append(self.p_vel, np32("vel_collided")[None])
-        _append(self.index, solved.astype(np.int32))
-        _append(self.density, np32("number_density")[solved])
-        _append(self.pressure, np32("pressure_unclamped")[solved])
-        _append(self.offsets, np.array([self.offsets[-1] + len(solved)], np.int64))
-        self.count += 1
-        self.group.attrs["count"] = self.count
-        self.group.file.flush()
-
-
-class _SampleRecorder:
-    """A :class:`~lagfluid.models.simulator.Simulator` wrapper that records every k-th step's intermediates.
-
-    Recording is switched on only for the sampled steps, so the other steps cost what a plain rollout does.
-    """
-
-    def __init__(self, sim: SplitStepSimulator, every: int, sink: Callable[[ParticleState, dict], None]):
-        self.sim, self.every, self.sink = sim, every, sink
-        self.name = sim.name
-
-    @property
-    def last_timings(self) -> dict[str, float]:
-        """The wrapped simulator's stage times of the last step."""
-        return self.sim.last_timings
-
-    @property
-    def last_info(self) -> dict[str, float]:
-        """The wrapped simulator's diagnostics of the last step."""
-        return self.sim.last_info
-
-    def reset(self, state: ParticleState) -> None:
-        """Reset the wrapped simulator."""
-        self.sim.reset(state)
-
-    def attributes(self) -> dict[str, Any]:
-        """The wrapped simulator's constants."""
-        return self.sim.attributes()
-
-    def step(self, state: ParticleState) -> ParticleState:
-        """One step; hands the intermediates of the sampled steps to the sink."""
-        record = state.step % self.every == 0
-        self.sim.record_intermediates = record
-        new = self.sim.step(state)
-        if record:
-            self.sink(state, self.sim.last_fields)
-        return new
 
 
 # ------------------------------------------------------------------------------------------ collision system
@@ -614,27 +336,26 @@ def _write_collision_samples(
     group.create_dataset("boundary_position", data=template.pos[nc:].numpy().astype(np.float32))
     group.create_dataset("boundary_type", data=template.ptype[nc:].numpy().astype(np.int8))
     arrays = {
-        name: _appendable(group, name, (nc, 3), "f4") for name in ("position", "velocity", "delta_velocity")
+        name: appendable(group, name, (nc, 3), "f4") for name in ("position", "velocity", "delta_velocity")
     }
-    system_ds = _appendable(group, "system", (), "i8", 1024)
-    step_ds = _appendable(group, "step", (), "i8", 1024)
+    system_ds = appendable(group, "system", (), "i8", 1024)
+    step_ds = appendable(group, "step", (), "i8", 1024)
     count = 0
     for k, state in enumerate(systems):
         state = state.to(device=spec.device)
         sim = SplitStepSimulator("collision", settings, None, CollisionRule(), None)
-        sim.record_intermediates = True
         for j in range(int(col["steps"])):
-            new = sim.step(state)
+            new = sim.step(state, record=True)
             f = sim.last_fields
-            dv = f["vel_collided"] - f["vel_star"]
+            dv = integrate.collision_target(f.vel_star, f.vel_collided)
             for name, values in (
-                ("position", f["pos_star"]),
-                ("velocity", f["vel_star"]),
+                ("position", f.pos_star),
+                ("velocity", f.vel_star),
                 ("delta_velocity", dv),
             ):
-                _append(arrays[name], values.cpu().numpy().astype(np.float32)[None])
-            _append(system_ds, np.array([k], np.int64))
-            _append(step_ds, np.array([j], np.int64))
+                append_rows(arrays[name], values.cpu().numpy().astype(np.float32)[None])
+            append_rows(system_ds, np.array([k], np.int64))
+            append_rows(step_ds, np.array([j], np.int64))
             count += 1
             state = new
     return count
@@ -676,16 +397,23 @@ def generate_scene(cfg: DictConfig, spec: DataSpec, index: int) -> Path:
     )
     start = time.perf_counter()
     try:
-        samples = _SampleWriter(writer.file.create_group("samples"), nf, params.dt)
-        recorder = _SampleRecorder(sim, spec.sample_every, samples.append)
+        samples = SampleWriter(writer.file.create_group("samples"), nf, params.dt)
         guard = Guard(float(cfg.solver.guard.max_courant), int(cfg.solver.guard.check_every))
+        every = spec.sample_every
+
+        def keep_sample(before: ParticleState, after: ParticleState, fields: Any) -> None:
+            if fields is not None:
+                samples.append(before.step, fields)
+
         _, record = rollout(
-            recorder,
+            sim,
             state,
             spec.steps,
             guard=guard,
-            writer=writer,
-            write_every=spec.sample_every,
+            write_every=every,
+            on_frame=writer.append_state,
+            on_step=keep_sample,
+            record_when=lambda s: s.step % every == 0,  # recording costs copies: only the sampled steps
             progress=bool(cfg.progress),
         )
         sim_seconds = time.perf_counter() - start
@@ -724,120 +452,6 @@ def generate_scene(cfg: DictConfig, spec: DataSpec, index: int) -> Path:
         path,
     )
     return path
-
-
-# ------------------------------------------------------------------------------------------ statistics
-class RunningStats:
-    """Mean, standard deviation, min and max of a stream of values, merged batch by batch in float64.
-
-    Values are (n,) for a scalar feature or (n, d) for a vector feature (per component).
-    """
-
-    def __init__(self) -> None:
-        self.count = 0
-        self.mean: np.ndarray | None = None
-        self.m2: np.ndarray | None = None
-        self.min: np.ndarray | None = None
-        self.max: np.ndarray | None = None
-
-    def update(self, values: np.ndarray) -> None:
-        """Add a batch of values (Chan et al.'s parallel update: stable for any batch sizes)."""
-        x = np.asarray(values, dtype=np.float64)
-        n = x.shape[0]
-        if n == 0:
-            return
-        mean, m2 = x.mean(axis=0), ((x - x.mean(axis=0)) ** 2).sum(axis=0)
-        if self.count == 0:
-            self.count, self.mean, self.m2 = n, mean, m2
-            self.min, self.max = x.min(axis=0), x.max(axis=0)
-            return
-        total = self.count + n
-        delta = mean - self.mean
-        self.mean = self.mean + delta * n / total
-        self.m2 = self.m2 + m2 + delta**2 * self.count * n / total
-        self.min, self.max = np.minimum(self.min, x.min(axis=0)), np.maximum(self.max, x.max(axis=0))
-        self.count = total
-
-    def result(self) -> dict[str, Any]:
-        """``mean``, ``std`` (population), ``min``, ``max``: floats or lists; ``count``."""
-        if self.count == 0:
-            return {"mean": None, "std": None, "min": None, "max": None, "count": 0}
-
-        def out(a: np.ndarray) -> Any:
-            return a.tolist() if a.ndim else float(a)
-
-        return {
-            "mean": out(self.mean),
-            "std": out(np.sqrt(self.m2 / self.count)),
-            "min": out(self.min),
-            "max": out(self.max),
-            "count": int(self.count),
-        }
-
-
-STATISTICS = {
-    "speed": "|v^n| of the fluid particles (advection-net input; vel_scaler of the authors)",
-    "velocity": "v^n of the fluid particles, per component, m/s",
-    "acceleration": "advection label a = nu lap(v) + g, per component, m/s^2 (acc_scaler)",
-    "acceleration_norm": "|a|, m/s^2",
-    "pressure": "PPE solution on the unknowns (pressure-net label, before the clamp), Pa (prs_scaler)",
-    "density_ratio": "n / n0 on the PPE unknowns (pressure-net input; dns_scaler)",
-    "pressure_speed": "|v**| of the fluid PPE unknowns (pressure-net input)",
-    "collision_speed": "|v*| in the collision systems, m/s",
-    "collision_delta_velocity": "collision label v** - v*, per component, m/s",
-}
-"""Feature name -> what it measures (every entry of ``metadata.json["statistics"]``)."""
-
-
-def dataset_statistics(paths: Iterable[str | os.PathLike]) -> dict[str, Any]:
-    """Statistics of the features in :data:`STATISTICS` plus LagrangeBench's ``vel_*``/``acc_*`` over files.
-
-    Returns:
-        ``{"statistics": {feature: {mean, std, min, max, count}}, "vel_mean": [3], "vel_std": [3],
-        "acc_mean": [3], "acc_std": [3]}``; LagrangeBench's are differences of positions between the uniformly
-        spaced frames (m per frame), first (vel) and second (acc) order.
-    """
-    stats = {name: RunningStats() for name in STATISTICS}
-    lb_vel, lb_acc = RunningStats(), RunningStats()
-    for path in paths:
-        path = Path(path)
-        info = read_scene_info(path)
-        with h5py.File(path, "r") as f:
-            g, s = f[GROUP], f["samples"]
-            nf, n0 = info.n_fluid, float(info.attrs["n0"])
-            frames = s["frame"][()]
-            vel = g["velocity"][()][frames].reshape(-1, 3)
-            stats["velocity"].update(vel)
-            stats["speed"].update(np.linalg.norm(vel, axis=1))
-            acc = s["advection/acceleration"][()].reshape(-1, 3)
-            stats["acceleration"].update(acc)
-            stats["acceleration_norm"].update(np.linalg.norm(acc, axis=1))
-            index = s["pressure/index"][()]
-            stats["pressure"].update(s["pressure/pressure"][()])
-            stats["density_ratio"].update(s["pressure/number_density"][()] / n0)
-            offsets, p_vel = s["pressure/offsets"][()], s["pressure/velocity"][()]
-            for k in range(len(frames)):
-                rows = index[offsets[k] : offsets[k + 1]]
-                fluid = rows[rows < nf]
-                stats["pressure_speed"].update(np.linalg.norm(p_vel[k][fluid], axis=1))
-            c = s["collision"]
-            stats["collision_speed"].update(np.linalg.norm(c["velocity"][()].reshape(-1, 3), axis=1))
-            stats["collision_delta_velocity"].update(c["delta_velocity"][()].reshape(-1, 3))
-            uniform = int(info.attrs["steps"]) // int(info.attrs["sample_every"]) + 1
-            pos = g["position"][: min(uniform, info.frames)].astype(np.float64)
-            if pos.shape[0] >= 2:
-                d1 = np.diff(pos, axis=0)
-                lb_vel.update(d1.reshape(-1, 3))
-                if pos.shape[0] >= 3:
-                    lb_acc.update(np.diff(d1, axis=0).reshape(-1, 3))
-    v, a = lb_vel.result(), lb_acc.result()
-    return {
-        "statistics": {name: st.result() for name, st in stats.items()},
-        "vel_mean": v["mean"],
-        "vel_std": v["std"],
-        "acc_mean": a["mean"],
-        "acc_std": a["std"],
-    }
 
 
 # ------------------------------------------------------------------------------------------ metadata

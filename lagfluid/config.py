@@ -1,0 +1,181 @@
+"""From a composed Hydra config to the objects of a run, shared by the tasks.
+
+Scene parameters and the initial state, the simulator (through the registry, checked against the
+:class:`~lagfluid.models.simulator.Simulator` contract and run at its own time step), the provenance
+attributes every output file carries, and the per-job output folder of a Hydra multirun.
+"""
+
+from __future__ import annotations
+
+import logging
+import re
+import subprocess
+import time
+from pathlib import Path
+from typing import Any
+
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+import lagfluid
+from lagfluid.errors import ConfigError, RolloutError
+from lagfluid.models.simulator import Simulator, check_simulator
+from lagfluid.registry import check_scene_name, get_simulator_factory
+from lagfluid.scenes import build_scene
+from lagfluid.state import ParticleState, SceneParams
+
+log = logging.getLogger(__name__)
+
+DTYPES = {"float32": torch.float32, "float64": torch.float64}
+
+
+def git_commit() -> str:
+    """The current git commit of the source tree, or '' outside a repository."""
+    try:
+        out = subprocess.run(
+            ["git", "rev-parse", "HEAD"],
+            cwd=Path(__file__).resolve().parent,
+            capture_output=True,
+            text=True,
+            timeout=5,
+            check=False,
+        )
+    except (OSError, subprocess.SubprocessError):
+        return ""
+    return out.stdout.strip() if out.returncode == 0 else ""
+
+
+def scene_params(cfg: DictConfig) -> SceneParams:
+    """Physical parameters from ``cfg.scene.params`` with the top-level ``dt`` override applied."""
+    raw = OmegaConf.to_container(cfg.scene.get("params", {}) or {}, resolve=True)
+    if "gravity" in raw:
+        raw["gravity"] = tuple(float(g) for g in raw["gravity"])
+    return SceneParams(**raw).with_overrides(dt=cfg.dt)
+
+
+def run_dtype(cfg: DictConfig) -> torch.dtype:
+    """The floating dtype of ``cfg.dtype``.
+
+    Raises:
+        RolloutError: not ``float32`` or ``float64``.
+    """
+    dtype = DTYPES.get(str(cfg.dtype))
+    if dtype is None:
+        raise RolloutError(f"unknown dtype '{cfg.dtype}'; available: {', '.join(DTYPES)}")
+    return dtype
+
+
+def run_device(cfg: DictConfig) -> torch.device:
+    """The torch device of ``cfg.device``.
+
+    Raises:
+        RolloutError: not a device string, or CUDA asked for where torch sees none.
+    """
+    try:
+        device = torch.device(str(cfg.device))
+    except RuntimeError as err:
+        raise RolloutError(f"unknown device '{cfg.device}': {err}") from err
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise RolloutError(
+            f"device={cfg.device} was asked for, but torch sees no CUDA device; use device=cpu"
+        )
+    return device
+
+
+def run_attributes(
+    state: ParticleState, cfg: DictConfig, model: str, scene: str, write_every: int
+) -> dict[str, Any]:
+    """Attributes every trajectory file carries: physical parameters and provenance (how it was made)."""
+    params = state.params
+    return {
+        "model": model,
+        "scene": scene,
+        "dt": params.dt,
+        "write_every": write_every,
+        "l0": params.l0,
+        "gravity": list(params.gravity),
+        "viscosity": params.viscosity,
+        "density": params.density,
+        "dim": params.dim,
+        "n_fluid": state.n_fluid,
+        "config": OmegaConf.to_yaml(cfg, resolve=True),
+        "version": lagfluid.__version__,
+        "git_commit": git_commit(),
+        "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+    }
+
+
+def build_initial_state(cfg: DictConfig) -> ParticleState:
+    """The scene of ``cfg.scene``, on ``cfg.device`` in ``cfg.dtype``.
+
+    ``cfg.scene.builder`` names the scene builder when a config reuses another scene's builder with other
+    options (``dam_small`` is a ``dam``); otherwise the builder is ``cfg.scene.name``.
+    """
+    builder = cfg.scene.get("builder") or cfg.scene.name
+    check_scene_name(builder)
+    dtype = run_dtype(cfg)
+    scene = OmegaConf.to_container(cfg.scene, resolve=True)
+    options = {k: v for k, v in scene.items() if k not in ("name", "builder", "params")}
+    state = build_scene(builder, scene_params(cfg), dtype=dtype, **options)
+    return state.to(device=run_device(cfg))
+
+
+def build_simulator(cfg: DictConfig) -> Simulator:
+    """The simulator named by ``cfg.model.name``, checked against the Simulator contract."""
+    name = str(cfg.model.name)
+    return check_simulator(get_simulator_factory(name)(cfg), name)
+
+
+def at_simulator_time_step(state: ParticleState, simulator: Simulator, cfg: DictConfig) -> ParticleState:
+    """``state`` with the time step the simulator steps by: its own ``dt`` when it declares one.
+
+    Raises:
+        ConfigError: ``dt=`` was set on the command line to another value than the model's own.
+    """
+    own = simulator.dt
+    if own is None or own == state.params.dt:
+        return state
+    if cfg.get("dt") is not None:
+        raise ConfigError(
+            f"model '{simulator.name}' steps by its own dt={own} s (it was trained so); "
+            f"dt={cfg.dt} cannot change that: drop dt= from the command line"
+        )
+    log.info("model %s steps by its own dt=%g s (scene: %g s)", simulator.name, own, state.params.dt)
+    return ParticleState(
+        pos=state.pos,
+        vel=state.vel,
+        ptype=state.ptype,
+        params=state.params.with_overrides(dt=float(own)),
+        pressure=state.pressure,
+        time=state.time,
+        step=state.step,
+        bounds=state.bounds,
+        check=False,
+    )
+
+
+def job_folder(num: int, override_dirname: str) -> str:
+    """The folder of multirun job ``num`` under ``out_dir``: its number and the overrides that made it.
+
+    ``override_dirname`` is Hydra's ``k1=v1,k2=v2`` of the job; path separators and characters that are
+    awkward in file names become ``_`` and long names are cut (the number keeps folders unique).
+    """
+    name = re.sub(r"[^A-Za-z0-9=.,+_-]", "_", override_dirname)[:120]
+    return f"{num}_{name}" if name else str(num)
+
+
+def multirun_out_dir(cfg: DictConfig) -> Path | None:
+    """``<out_dir>/<job folder>`` when ``cfg`` is a job of a Hydra multirun, else None.
+
+    Every job of a sweep resolves the same ``out_dir`` unless it happens to interpolate what the sweep
+    varies; one folder per job keeps one job's ``rollout.h5`` from replacing another's.
+    """
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.types import RunMode
+
+    if not HydraConfig.initialized():
+        return None
+    hydra_cfg = HydraConfig.get()
+    if hydra_cfg.mode != RunMode.MULTIRUN:
+        return None
+    return Path(str(cfg.out_dir)) / job_folder(int(hydra_cfg.job.num), str(hydra_cfg.job.override_dirname))

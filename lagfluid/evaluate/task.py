@@ -1,0 +1,160 @@
+"""``task=evaluate``: the model and the reference rolled out, compared and written (see the package doc)."""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import time
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+import lagfluid
+from lagfluid.config import (
+    at_simulator_time_step,
+    build_initial_state,
+    build_simulator,
+    git_commit,
+    run_device,
+    scene_params,
+)
+from lagfluid.errors import ConfigError
+from lagfluid.evaluate.compare import compare, finite_or_none, summaries
+from lagfluid.evaluate.figures import plot_errors, plot_pressure_slice
+from lagfluid.evaluate.model_run import run_model
+from lagfluid.evaluate.options import EvaluateOptions
+from lagfluid.evaluate.reference import key_hash, reference_rollout
+from lagfluid.models.simulator import Simulator
+from lagfluid.outputs import part_path, publish
+from lagfluid.physics.stages import SolverSettings
+from lagfluid.state import ParticleState
+
+log = logging.getLogger(__name__)
+
+OUTPUTS = ("rollout.h5", "metrics.json", "error_vs_time.png", "pressure_slice.png")
+
+
+def reference_overrides(
+    cfg: DictConfig, options: EvaluateOptions, simulator: Simulator, state: ParticleState
+) -> dict[str, Any]:
+    """``evaluate.reference``, plus what a model stepping by its own dt needs: MPS over the same time.
+
+    A model with its own ``dt`` (trained on frames several solver steps apart) is compared with MPS at the
+    scene's dt; MPS then runs ``dt_model / dt_scene`` times the steps and stores frames as often in time.
+    Settings the user gave in ``evaluate.reference`` win.
+
+    Raises:
+        ConfigError: the model's dt is not a whole multiple of the scene's.
+    """
+    overrides = dict(options.reference)
+    own = simulator.dt
+    if own is None:
+        return overrides
+    scene_dt = scene_params(cfg).dt
+    ratio = float(own) / scene_dt
+    if abs(ratio - round(ratio)) > 1e-9 * ratio or round(ratio) < 1:
+        raise ConfigError(
+            f"model '{simulator.name}' steps by dt={own} s, not a whole multiple of the scene's "
+            f"{scene_dt} s; "
+            "set evaluate.reference={dt: ..., steps: ..., write_every: ...} to say how MPS should run"
+        )
+    k = round(ratio)
+    if k > 1:
+        overrides.setdefault("steps", int(cfg.steps) * k)
+        overrides.setdefault("write_every", int(cfg.write_every) * k)
+    return overrides
+
+
+def evaluate(cfg: DictConfig) -> dict[str, Any]:
+    """``task=evaluate``: roll out ``cfg.model`` and MPS from ``cfg.scene``, compare, write the outputs.
+
+    Returns:
+        The content of ``metrics.json`` (with NaN where JSON has null).
+
+    Raises:
+        LagfluidError: bad configuration, an unknown model, missing weights, or an MPS reference that
+            stopped (a model that stops is recorded, not raised).
+    """
+    start = time.perf_counter()
+    torch.manual_seed(int(cfg.seed))
+    if cfg.threads:
+        torch.set_num_threads(int(cfg.threads))
+    options = EvaluateOptions.from_config(cfg.evaluate)
+    steps, write_every = int(cfg.steps), int(cfg.write_every)
+    if steps < 1 or write_every < 1:
+        raise ConfigError(f"task=evaluate needs steps >= 1 and write_every >= 1, got {steps}, {write_every}")
+    run_device(cfg)
+    # Model first: an unknown model or missing weights fail before a possibly long reference run, and
+    # everything fails before out_dir is touched (its last outputs stay until new ones replace them).
+    state = build_initial_state(cfg)
+    simulator = build_simulator(cfg)
+    state = at_simulator_time_step(state, simulator, cfg)
+    options = replace(options, reference=reference_overrides(cfg, options, simulator, state))
+    reference_path, reused, key = reference_rollout(cfg, options)
+    out_dir = Path(cfg.out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    model_path = part_path(out_dir / "rollout.h5")
+    run = run_model(cfg, simulator, state, model_path, options.one_step)
+
+    settings = SolverSettings.from_config(cfg.solver)
+    frames = compare(model_path, reference_path, settings)
+    for name in ("advection_nmae", "ppe_relative_residual"):
+        by_step = dict(zip(run["step"], run[name], strict=True))
+        frames[name] = [by_step.get(s, math.nan) for s in frames["step"]]
+
+    slice_info = None
+    if options.figures:
+        title = f"{simulator.name} vs MPS on {cfg.scene.name}"
+        plot_errors(part_path(out_dir / "error_vs_time.png"), frames, title)
+        slice_path = part_path(out_dir / "pressure_slice.png")
+        slice_info = plot_pressure_slice(slice_path, model_path, reference_path, options, title)
+    metrics = {
+        "task": "evaluate",
+        "model": simulator.name,
+        "scene": str(cfg.scene.name),
+        "complete": run["complete"],
+        "stop_reason": run["stop_reason"],
+        "steps_requested": steps,
+        "steps": run["steps"],
+        "frames_compared": len(frames["step"]),
+        "dt": float(state.params.dt),
+        "write_every": write_every,
+        "device": str(cfg.device),
+        "dtype": str(cfg.dtype),
+        "particles": {"fluid": state.n_fluid, "boundary": state.num_particles - state.n_fluid},
+        "parameters": int(simulator.parameters),
+        "summary": summaries(frames, options.horizons),
+        "frames": frames,
+        "pressure_slice": slice_info,
+        "timing": run["timing"],
+        "reference": {
+            "path": str(reference_path),
+            "reused": reused,
+            "overrides": options.reference,
+            "key_hash": key_hash(key),
+            "key": key,
+        },
+        "simulator": simulator.attributes(),
+        "config": OmegaConf.to_yaml(cfg, resolve=True),
+        "version": lagfluid.__version__,
+        "git_commit": git_commit(),
+        "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+        "wall_time_total_s": time.perf_counter() - start,
+    }
+    part_path(out_dir / "metrics.json").write_text(json.dumps(finite_or_none(metrics), indent=2))
+    publish(out_dir, OUTPUTS, run["complete"])
+    summary = metrics["summary"]
+    log.info(
+        "wrote %s: %s vs MPS, %d frames, Chamfer mean %.3f mm, density error mean %.4f (MPS %.4f)",
+        out_dir,
+        simulator.name,
+        len(frames["step"]),
+        summary["chamfer_mm"]["mean"],
+        summary["density_error"]["model"]["mean"],
+        summary["density_error"]["reference"]["mean"],
+    )
+    return metrics

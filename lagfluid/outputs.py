@@ -1,0 +1,57 @@
+"""A run's output files replace the previous run's together, and only once the run has ended.
+
+A task writes every output under its :func:`part_path` (``rollout.part.h5``) and calls :func:`publish` at the
+end: a folder never holds files of two runs, a run that fails before its first step leaves the last run's
+files untouched, and a run that ends incomplete keeps the last complete run's files in ``previous/``.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import shutil
+from collections.abc import Sequence
+from pathlib import Path
+
+from lagfluid.data.store import TrajectoryFileError, open_lagfluid_file
+
+log = logging.getLogger(__name__)
+
+
+def part_path(path: Path) -> Path:
+    """Where a run writes ``path`` until it ends: ``rollout.h5`` -> ``rollout.part.h5`` (same suffix)."""
+    return path.with_name(f"{path.stem}.part{path.suffix}")
+
+
+def _complete_rollout(path: Path) -> bool:
+    """Whether ``path`` holds a finished rollout (attributes only; the arrays are not read)."""
+    try:
+        with open_lagfluid_file(path) as f:
+            return bool(f["00000"].attrs.get("complete", False))
+    except (TrajectoryFileError, OSError, KeyError):
+        return False
+
+
+def publish(out_dir: Path, names: Sequence[str], complete: bool) -> None:
+    """Move this run's part files of ``names`` into place; an earlier file this run did not write goes too.
+
+    Args:
+        out_dir: the run's folder.
+        names: its output file names; ``names[0]`` is the rollout whose ``complete`` flag marks a finished
+            earlier run.
+        complete: whether this run finished; if not, a finished earlier run's files move to ``previous/``.
+    """
+    old = [out_dir / name for name in names if (out_dir / name).exists()]
+    if old and not complete and _complete_rollout(out_dir / names[0]):
+        keep = out_dir / "previous"
+        shutil.rmtree(keep, ignore_errors=True)
+        keep.mkdir()
+        for path in old:
+            os.replace(path, keep / path.name)
+        log.warning("this run is incomplete; the last complete run's outputs are kept in %s", keep)
+    for name in names:
+        final = out_dir / name
+        if part_path(final).exists():
+            os.replace(part_path(final), final)
+        else:
+            final.unlink(missing_ok=True)

@@ -1,0 +1,194 @@
+"""``task=simulate``: roll a model out on a scene and write its outputs.
+
+``python -m lagfluid.run model=X scene=Y steps=N out_dir=DIR`` writes
+
+* ``DIR/rollout.h5``   the trajectory (:mod:`lagfluid.data.store`),
+* ``DIR/metrics.json`` counts, median wall time per step and per stage, density error and divergence,
+* ``DIR/preview.png``  first, middle and last frame coloured by pressure.
+
+Outputs are never lost: everything that can be checked before the first step is (dtype, device, scene,
+model and weights) before any file in ``DIR`` is touched, and the new files replace the old ones together
+when the run ends (:mod:`lagfluid.outputs`). A run the guard stopped is a result too (its files say
+``complete: false`` and why); the last complete run's files it replaces are kept in ``DIR/previous/``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from omegaconf import DictConfig
+
+import lagfluid
+from lagfluid.config import (
+    at_simulator_time_step,
+    build_initial_state,
+    build_simulator,
+    run_attributes,
+)
+from lagfluid.data.store import TrajectoryWriter
+from lagfluid.errors import RolloutError
+from lagfluid.metrics import field_metrics, summarize
+from lagfluid.outputs import part_path, publish
+from lagfluid.physics.stages import SolverSettings, lattice_constants
+from lagfluid.rollout import Guard, rollout, timing_summary
+from lagfluid.state import ParticleState, ParticleType
+
+log = logging.getLogger(__name__)
+
+OUTPUTS = ("rollout.h5", "metrics.json", "preview.png")
+
+
+class _FrameMetrics:
+    """Density error and divergence of every stored frame, and the three frames of the preview."""
+
+    def __init__(self, state: ParticleState, settings: SolverSettings, total_frames: int) -> None:
+        params = state.params
+        self.settings, self.params = settings, params
+        self.n0 = lattice_constants(params.l0, settings, params.dim).n0
+        self.total_frames = total_frames
+        self.density_errors: list[float] = []
+        self.divergences: list[float] = []
+        self.snapshots: dict[str, tuple[float, np.ndarray, np.ndarray]] = {}
+        self.count = 0
+
+    def __call__(self, s: ParticleState) -> None:
+        settings, params, nf = self.settings, self.params, s.n_fluid
+        m = field_metrics(
+            s.pos,
+            s.vel,
+            s.ptype,
+            self.n0,
+            settings.re_density * params.l0,
+            settings.re_gradient * params.l0,
+            settings.surface_beta,
+            params.dim,
+            settings.neighbor_backend,
+        )
+        self.density_errors.append(m.density_error)
+        self.divergences.append(m.velocity_divergence)
+        # Keep only the first, middle and latest frame for the preview: O(1) memory for long runs.
+        index, self.count = self.count, self.count + 1
+        snap = (s.time, s.pos[:nf].cpu().numpy(), s.pressure[:nf].cpu().numpy())
+        if index == 0:
+            self.snapshots["first"] = snap
+        if index == self.total_frames // 2:
+            self.snapshots["middle"] = snap
+        self.snapshots["last"] = snap
+
+
+def simulate(cfg: DictConfig) -> dict[str, Any]:
+    """``task=simulate``: roll out ``cfg.model`` on ``cfg.scene`` and write the three output files."""
+    torch.manual_seed(int(cfg.seed))
+    if cfg.threads:
+        torch.set_num_threads(int(cfg.threads))
+    if int(cfg.steps) < 0 or int(cfg.write_every) < 1:
+        raise RolloutError(
+            f"need steps >= 0 and write_every >= 1, got steps={cfg.steps}, write_every={cfg.write_every}"
+        )
+    # Everything that can fail before the first step does so here, before out_dir is touched.
+    state = build_initial_state(cfg)
+    simulator = build_simulator(cfg)
+    state = at_simulator_time_step(state, simulator, cfg)
+    settings = SolverSettings.from_config(cfg.solver)
+    guard = Guard(float(cfg.solver.guard.max_courant), int(cfg.solver.guard.check_every))
+
+    out_dir = Path(cfg.out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    params, nf = state.params, state.n_fluid
+    write_every = int(cfg.write_every)
+    attrs = run_attributes(state, cfg, simulator.name, str(cfg.scene.name), write_every)
+    boundary = slice(nf, None)
+    writer = TrajectoryWriter(
+        part_path(out_dir / "rollout.h5"),
+        nf,
+        state.pos[boundary].cpu().numpy(),
+        state.ptype[boundary].cpu().numpy(),
+        attrs,
+    )
+    total_frames = int(cfg.steps) // write_every + 1 + (1 if int(cfg.steps) % write_every else 0)
+    frames = _FrameMetrics(state, settings, total_frames)
+
+    def on_frame(s: ParticleState) -> None:
+        writer.append(
+            s.time,
+            s.pos[:nf].detach().cpu().numpy(),
+            s.vel[:nf].detach().cpu().numpy(),
+            s.pressure[:nf].detach().cpu().numpy(),
+        )
+        frames(s)
+
+    stop_reason, complete = "", True
+    record: dict[str, Any] = {"step_seconds": [], "stage_seconds": {}, "info": {}}
+    start = time.perf_counter()
+    try:
+        _, record = rollout(
+            simulator,
+            state,
+            int(cfg.steps),
+            guard=guard,
+            write_every=write_every,
+            on_frame=on_frame,
+            progress=bool(cfg.progress),
+        )
+    except BaseException as err:  # a guard stop, a bug, Ctrl-C: the file says the run is incomplete and why
+        stop_reason = str(err) if isinstance(err, RolloutError) else f"{type(err).__name__}: {err}"
+        complete = False
+        record = getattr(err, "record", record)
+        raise
+    finally:
+        for key, value in simulator.attributes().items():
+            writer.group.attrs[key] = value
+        writer.close(complete=complete, stop_reason=stop_reason)
+        if frames.snapshots:
+            from lagfluid.viz import preview
+
+            shots = [frames.snapshots[k] for k in ("first", "middle", "last") if k in frames.snapshots]
+            shots = [f for i, f in enumerate(shots) if i == 0 or f[0] != shots[i - 1][0]]
+            walls = state.pos[boundary][state.ptype[boundary] == ParticleType.WALL]
+            preview(
+                part_path(out_dir / "preview.png"),
+                shots,
+                walls.cpu().numpy(),
+                f"{simulator.name} on {cfg.scene.name}",
+            )
+        metrics = {
+            "model": simulator.name,
+            "scene": str(cfg.scene.name),
+            "complete": complete,
+            "stop_reason": stop_reason,
+            "steps_requested": int(cfg.steps),
+            "steps": len(record["step_seconds"]),
+            "dt": params.dt,
+            "device": str(cfg.device),
+            "dtype": str(cfg.dtype),
+            "parameters": int(simulator.parameters),
+            "particles": {
+                "fluid": nf,
+                "wall": int(state.wall_mask.sum()),
+                "dummy": int(state.dummy_mask.sum()),
+            },
+            **timing_summary(record),
+            "density_error": summarize(frames.density_errors),
+            "velocity_divergence_per_s": summarize(frames.divergences),
+            "frames_evaluated": len(frames.density_errors),
+            "wall_time_total_s": time.perf_counter() - start,
+            "simulator": simulator.attributes(),
+            "version": lagfluid.__version__,
+            "git_commit": attrs["git_commit"],
+        }
+        part_path(out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2))
+        publish(out_dir, OUTPUTS, complete)
+    log.info(
+        "wrote %s: %d steps, %.1f ms/step median, density error mean %.4f",
+        out_dir,
+        metrics["steps"],
+        1e3 * metrics["time_per_step_median_s"],
+        metrics["density_error"]["mean"],
+    )
+    return metrics
