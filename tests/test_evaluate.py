@@ -184,13 +184,13 @@ class _Exploding:
     dt = None
     history_length = 0
     parameters = 0
-    last_info: dict = {}
     last_fields = None
 
     def __init__(self, cfg):
         from lagfluid.models.mps_simulator import build_mps
 
         self.inner = build_mps(cfg)
+        self.last_info = {}
 
     @property
     def last_timings(self):

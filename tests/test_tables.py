@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import copy
 import csv
 import math
 from dataclasses import replace
@@ -10,18 +11,11 @@ from dataclasses import replace
 import pytest
 
 from benchmarks.pareto import dominates, pareto_front
-from benchmarks.tables import (
-    MARK_END,
-    MARK_START,
-    QUICK,
-    Bench,
-    coarsened_scene,
-    compose_config,
-    hydra_value,
-    run_all,
-    steps_in,
-    write_readme,
-)
+from benchmarks.tables.bench import Bench
+from benchmarks.tables.cli import run_all
+from benchmarks.tables.config import coarsened_scene, compose_config, hydra_value, steps_in
+from benchmarks.tables.profiles import QUICK
+from benchmarks.tables.report import MARK_END, MARK_START, write_readme
 from lagfluid.errors import ConfigError
 from lagfluid.evaluate import EvaluateOptions, key_hash, reference_key, reference_settings
 from lagfluid.run import CONF_DIR
@@ -102,6 +96,85 @@ def test_every_tradeoff_and_fig5_row_file_is_compared_with_the_default_mps():
         assert key_hash(reference_key(reference_settings(cfg, overrides))) == default, name
 
 
+# ------------------------------------------------------------------------------------------- simulators
+@pytest.fixture
+def runtime_plugin(monkeypatch):
+    """Register simulators and experiment rows in this process only (as a plugin would, at import)."""
+    from hydra.core.config_store import ConfigStore
+
+    from lagfluid import registry
+
+    store = ConfigStore.instance()
+    monkeypatch.setattr(registry, "_REGISTERED", dict(registry._REGISTERED))
+    monkeypatch.setattr(store, "repo", copy.deepcopy(store.repo))
+
+    def add(name: str, rows: dict[str, dict] | None = None) -> None:
+        registry.register_simulator(name)(lambda cfg: None)
+        for row, node in (rows or {}).items():
+            node = {"defaults": [{"override /model": name}], **node}
+            store.store(group="experiment", name=row, node=node, package="_global_")
+
+    return add
+
+
+def test_the_built_in_simulators_come_from_their_row_files_in_the_papers_order():
+    from benchmarks.tables.simulators import Simulator, all_simulators, simulator
+
+    assert all_simulators() == [
+        Simulator("mps", "MPS", "mps", "none"),
+        Simulator("fgn", "FGN", "fgn", "fgn"),
+        Simulator("hybrid_pressure", "hybrid: learned pressure", "hybrid", "fgn"),
+        Simulator("hybrid_advection", "hybrid: learned advection", "hybrid", "fgn"),
+        Simulator("fgn_original", "FGN, authors' weights", "fgn_original", "authors"),
+    ]
+    assert [s.key for s in all_simulators(["fgn_original", "mps"])] == ["mps", "fgn_original"]
+    with pytest.raises(ConfigError, match=r"no simulator 'nope' in the tables; available: mps, fgn, "):
+        simulator("nope")
+
+
+def test_a_simulator_registered_at_runtime_with_rows_is_listed_with_its_label(runtime_plugin):
+    from benchmarks.tables.simulators import Simulator, all_simulators, simulator
+
+    table = {"label": "toy MLP", "order": 2.5, "weights": "none"}
+    rows = {f"table3_{case}_toy_mlp": {"task": "evaluate", "table": table} for case in ("dam", "waterfall")}
+    runtime_plugin("toy_mlp", {**rows, "table2_toy_mlp": {"task": "simulate", "table": table}})
+    runtime_plugin("toy_plain")  # no row files: run as model=toy_plain, after every simulator with rows
+    keys = [s.key for s in all_simulators()]
+    assert keys == [
+        "mps",
+        "fgn",
+        "hybrid_pressure",
+        "toy_mlp",
+        "hybrid_advection",
+        "fgn_original",
+        "toy_plain",
+    ]
+    assert simulator("toy_mlp") == Simulator("toy_mlp", "toy MLP", "toy_mlp", "none")
+    assert simulator("toy_plain") == Simulator("toy_plain", "toy_plain", "toy_plain", "none")
+    assert compose_config(["experiment=table3_dam_toy_mlp"]).model.name == "toy_mlp"  # the row runs it
+
+
+def test_a_bad_table_block_names_the_row_and_the_value(runtime_plugin):
+    from benchmarks.tables.simulators import all_simulators
+
+    runtime_plugin("toy_bad", {"table2_toy_bad": {"table": {"label": "x", "weights": "shipped"}}})
+    with pytest.raises(
+        ConfigError, match=r"experiment=table2_toy_bad: table.weights 'shipped' is not one of"
+    ):
+        all_simulators()
+
+
+def test_row_files_of_one_simulator_must_agree(runtime_plugin):
+    from benchmarks.tables.simulators import all_simulators
+
+    runtime_plugin(
+        "toy_two",
+        {"table2_toy_two": {"table": {"label": "two"}}, "table3_dam_toy_two": {"table": {"label": "Two"}}},
+    )
+    with pytest.raises(ConfigError, match=r"the row files of 'toy_two' describe it differently"):
+        all_simulators()
+
+
 # ------------------------------------------------------------------------------------------- end to end
 TINY = replace(
     QUICK,
@@ -166,6 +239,12 @@ def test_tiny_profile_writes_every_output(tiny_run):
     assert all(r["machine"] and r["git_commit"] and r["overrides"] for r in rows)  # provenance per number
 
 
+def test_table4_pressure_rows_are_the_rows_with_a_learned_pressure_stage(tiny_run):
+    _, written = tiny_run
+    pressure = [r["case"] for r in written["rows"]["table4"] if r["network"] == "pressure"]
+    assert pressure == ["FGN, dam", "hybrid: learned pressure, dam"]
+
+
 def test_tiny_profile_rewrites_only_the_marked_readme_part(tiny_run):
     root, written = tiny_run
     text = (root / "README.md").read_text()
@@ -213,7 +292,7 @@ def test_bench_rejects_a_frame_interval_that_is_not_whole_steps(untrained_weight
 
 
 def test_an_only_rerun_replaces_its_parts_and_keeps_the_others(tmp_path):
-    from benchmarks.tables import Report, earlier_parts, merge_parts
+    from benchmarks.tables.report import Report, earlier_parts, merge_parts
 
     first = Report(tmp_path / "tables", {"date": "day 1", "script_commit": "aaa"})
     first.sections = {"table2": "T2 old", "table3": "T3 old"}
@@ -238,7 +317,7 @@ def test_an_only_rerun_replaces_its_parts_and_keeps_the_others(tmp_path):
 
 
 def test_an_only_run_without_an_earlier_full_run_is_refused(tmp_path):
-    from benchmarks.tables import Report, merge_parts
+    from benchmarks.tables.report import Report, merge_parts
     from lagfluid.errors import ConfigError
 
     report = Report(tmp_path / "tables", {"date": "d", "script_commit": "c"})
@@ -247,7 +326,7 @@ def test_an_only_run_without_an_earlier_full_run_is_refused(tmp_path):
 
 
 def test_runtime_estimate_counts_only_the_parts_asked_for():
-    from benchmarks.tables import FULL, PARTS, estimate_seconds
+    from benchmarks.tables.profiles import FULL, PARTS, estimate_seconds
 
     full = estimate_seconds(FULL)
     alone = {part: estimate_seconds(FULL, [part]) for part in PARTS}

@@ -1,0 +1,173 @@
+"""The command line of ``python -m benchmarks.tables``: run the chosen parts of a profile, write it all."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import shutil
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import torch
+
+import benchmarks.tables
+from benchmarks.provenance import git_commit, markdown, provenance
+from benchmarks.tables.bench import Bench
+from benchmarks.tables.parts import part_fig5, part_table2, part_table3, part_table4, part_tradeoff
+from benchmarks.tables.profiles import FULL, PARTS, QUICK, Profile, estimate_seconds
+from benchmarks.tables.report import (
+    README,
+    REPO,
+    RESULTS,
+    Report,
+    cpu_model,
+    earlier_parts,
+    merge_parts,
+    write_readme,
+)
+from benchmarks.tables.simulators import FGN
+from lagfluid.models.fgn_simulator import SHIPPED_WEIGHTS
+
+
+def run_all(profile: Profile, args: argparse.Namespace) -> dict[str, Any]:
+    """Run the selected parts of ``profile`` and write every output.
+
+    Returns:
+        ``files`` written, CSV ``rows`` per part, ``failed`` row keys, ``elapsed_s`` and ``readme``
+        (whether the README was rewritten).
+    """
+    start = time.perf_counter()
+    load = os.getloadavg()[0]
+    torch.set_num_threads(int(args.threads))
+    parts = set(args.only or PARTS)
+    bench = Bench(profile, args)
+    out_dir = Path(args.results)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    machine = (
+        f"{cpu_model()}, {os.cpu_count()} cores, torch {torch.__version__}, {args.threads} torch threads"
+    )
+    meta = {"machine": machine, "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())}
+    meta["script_commit"] = git_commit()
+    report = Report(out_dir / profile.prefix, meta)
+
+    if "table2" in parts:  # first: the timing rows run before anything else has warmed or loaded the machine
+        part_table2(bench, report)
+    dam_runs = bench.table3_runs("dam") if parts - {"table2"} else []
+    if "table3" in parts:
+        part_table3(bench, report, dam_runs)
+    fig5 = bench.fig5_runs() if parts & {"fig5", "tradeoff"} else ([], None, None)
+    if "fig5" in parts:
+        part_fig5(bench, report, fig5)
+    if "table4" in parts:
+        part_table4(bench, report, dam_runs)
+    if "tradeoff" in parts:
+        part_tradeoff(bench, report, dam_runs, fig5[0])
+
+    fgn_dam = bench.done.get(f"table3/dam/{FGN}")
+    figures = ""
+    if fgn_dam is not None and fgn_dam.ok and profile.figures:
+        src = bench.runs_dir / fgn_dam.key.replace("/", "_")  # evaluate's out_dir of that row
+        for name, fig in (("error_vs_time.png", "fig4_dam_fgn"), ("pressure_slice.png", "fig6_dam_fgn")):
+            if (src / name).is_file():
+                dest = report.path(f"{fig}.png")
+                shutil.copy(src / name, dest)
+                figures += f"![{fig}]({dest.name})\n\n"
+
+    if figures:
+        report.sections["figures"] = f"## Figs. 4 and 6: FGN on the dam\n\n{figures}"
+    elapsed = time.perf_counter() - start
+    extra = {"CPU": cpu_model(), "profile": f"{profile.name}: {profile.description}"}
+    extra["runtime"] = f"{elapsed / 60:.1f} min"
+    extra["FGN weights"] = str(args.weights or f"shipped ({SHIPPED_WEIGHTS.relative_to(REPO)})")
+    prov = provenance("benchmarks.tables", load, "cpu", **extra)
+    invocation = f"`{prov['command']}`, {extra['runtime']}"
+    merged = merge_parts(report, bool(args.only), {r.key: r.command for r in bench.done.values()}, invocation)
+    history = "\n".join(f"- {when}: {what}" for when, what in merged["history"].items())
+    runs_md = "\n".join(f"- `{key}`: `{command}`" for key, command in merged["commands"].items())
+    run = f"{meta['date']} at commit {meta['script_commit']}"
+    sections = merged["sections"]
+    body = earlier_parts(merged, "sections", run) + "\n".join(
+        sections[k] for k in ("table3", "table2", "table4", "fig5", "tradeoff") if k in sections
+    )
+    md = report.path("report.md")
+    md.write_text(
+        f"# Tables and figures ({profile.name} profile)\n\n{profile.description}.\n\n{body}\n"
+        + sections.get("figures", "")
+        + f"## Provenance\n\n{markdown(prov)}\n\n"
+        + f"### Runs of the script that made this report\n\n{history}\n\n"
+        + f"### Rows (each row's command)\n\n{runs_md}\n"
+    )
+    written: dict[str, Any] = {"files": report.files, "rows": report.rows, "readme": False}
+    if args.readme and merged["readme"]:
+        label = (
+            f"*{profile.name} profile*: {profile.description}. Run {meta['date']} at commit "
+            f"{meta['script_commit']} on {machine}; FGN weights: {extra['FGN weights']}. Every table, each "
+            f"row's command and the figures: [`benchmarks/results/{md.name}`]"
+            f"(benchmarks/results/{md.name}).\n\n"
+        )
+        order = ("table1", "table2", "table4", "fig5", "tradeoff")
+        pieces = merged["readme"]
+        section = label + earlier_parts(merged, "readme", run)
+        section += "\n".join(pieces[k] for k in order if k in pieces)
+        written["readme"] = write_readme(section, Path(args.readme_path))
+    written["failed"] = [r.key for r in bench.done.values() if not r.ok]
+    written["elapsed_s"] = elapsed
+    print(
+        f"[tables] done in {elapsed / 60:.1f} min; wrote {len(report.files)} files to {out_dir}", flush=True
+    )
+    if written["failed"]:
+        print(f"[tables] rows that failed: {', '.join(written['failed'])}", flush=True)
+    return written
+
+
+def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
+    """The command line (see :mod:`benchmarks.tables`)."""
+    ap = argparse.ArgumentParser(
+        prog="python -m benchmarks.tables", description=(benchmarks.tables.__doc__ or "").splitlines()[0]
+    )
+    ap.add_argument(
+        "--quick", action="store_true", help="the reduced profile (< 5 min), tables_quick_* files"
+    )
+    ap.add_argument("--only", nargs="+", choices=PARTS, help="run only these parts")
+    ap.add_argument("--weights", default=None, help="FGN checkpoint directory (default: the shipped weights)")
+    ap.add_argument(
+        "--threads", type=int, default=os.cpu_count() or 1, help="torch threads (default: all cores)"
+    )
+    ap.add_argument("--results", default=str(RESULTS), help="where the md/csv/png files go")
+    ap.add_argument("--runs-dir", default="runs/tables", help="rollouts and MPS references")
+    ap.add_argument(
+        "--readme",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="rewrite the README's results tables (default: yes for the full profile, no for --quick)",
+    )
+    ap.add_argument("--readme-path", default=str(README), help=argparse.SUPPRESS)
+    args = ap.parse_args(argv)
+    if args.readme is None:
+        args.readme = not args.quick
+    return args
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of ``python -m benchmarks.tables``; returns the exit status (1 when a row failed)."""
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    args = parse_args(argv)
+    profile = QUICK if args.quick else FULL
+    if args.weights is None and not (SHIPPED_WEIGHTS / "advection.pt").is_file():
+        sys.stderr.write(
+            f"benchmarks.tables: no shipped FGN weights in {SHIPPED_WEIGHTS}; pass --weights DIR (a "
+            "task=train out_dir holding advection.pt, collision.pt, pressure.pt)\n"
+        )
+        return 2
+    print(f"[tables] {profile.name} profile: {profile.description}", flush=True)
+    est = estimate_seconds(profile, args.only or PARTS)
+    what = f"of {' '.join(args.only)} " if args.only else ""
+    print(
+        f"[tables] expected runtime {what}~{est / 60:.0f} min on the project's 2-core CPU machine", flush=True
+    )
+    written = run_all(profile, args)
+    return 1 if written["failed"] else 0

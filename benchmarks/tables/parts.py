@@ -1,0 +1,290 @@
+"""The parts of the tables (``--only`` names them): each runs its rows, writes its CSV, renders its text."""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+from benchmarks.tables.bench import Bench, Run
+from benchmarks.tables.plots import plot_fig5, plot_tradeoff
+from benchmarks.tables.report import Report
+from benchmarks.tables.rows import (
+    TRADEOFF_METRICS,
+    fmt,
+    md_table,
+    provenance_columns,
+    ratio,
+    status,
+    table2_rows,
+    table3_rows,
+    table4_rows,
+    tradeoff_rows,
+)
+from benchmarks.tables.simulators import FGN, GROUND_TRUTH, simulator
+from lagfluid.errors import ConfigError
+
+# The FGN paper's numbers (Li & Barati Farimani): Table 1 (density error mean/max, divergence mean/max,
+# Chamfer mean/max mm), Table 2 (parameters, inference ms, NNS ms; a GPU) and Table 4 (percent, mean/std).
+PAPER_TABLE1 = {
+    ("dam", "FGN"): (0.0461, 0.0900, 0.0195, 0.0280, 24.2, 30.1),
+    ("dam", "Ground truth"): (0.0380, 0.0710, 0.0190, 0.0268, None, None),
+    ("waterfall", "FGN"): (0.0541, 0.1350, 0.0207, 0.0431, 24.8, 29.6),
+    ("waterfall", "Ground truth"): (0.0429, 0.0966, 0.0196, 0.0398, None, None),
+}
+PAPER_TABLE2 = {"FGN": (41996, 5.7, 46.4), "MPS": (None, 313.2, 42.3)}  # parameters, inference ms, NNS ms
+PAPER_TABLE4 = {"advection": (12.4, 5.6), "pressure": (8.3, 1.1)}  # percent, mean and std
+
+
+def part_table2(bench: Bench, report: Report) -> None:
+    """Table 2: parameters and time per step, every simulator, one after another in this process."""
+    p = bench.profile
+    rows = table2_rows(bench.table2_runs())
+    report.csv("table2", rows)
+    cells = [
+        [
+            r["simulator"],
+            r["parameters"],
+            r["fluid_particles"],
+            r["step_ms"],
+            r["inference_ms"],
+            r["neighbor_search_ms"],
+            r["speedup_vs_mps"],
+            r["status"],
+        ]
+        for r in rows
+    ]
+    header = [
+        "simulator",
+        "parameters",
+        "fluid",
+        "ms/step",
+        "inference ms",
+        "NNS ms",
+        "MPS time / time",
+        "status",
+    ]
+    paper = [[k, v[0], v[1], v[2]] for k, v in PAPER_TABLE2.items()]
+    report.sections["table2"] = (
+        f"## Table 2: time per step on `{p.timing_scene}`\n\n"
+        f"Median over {p.timing_steps} steps after {p.timing_warmup} warm-up steps, every simulator in this "
+        "process one after another. NNS: the neighbour search (Verlet list update and filtering); inference: "
+        "the rest of the step (networks or exact stages, pressure gradient, update). Parameters: trainable "
+        f"parameters of the learned stages. Machine: {report.meta['machine']}.\n\n"
+        f"{md_table(header, cells, 'lrrrrrrl')}\n\nThe paper's Table 2 (a GPU, ~40k particles):\n\n"
+        f"{md_table(['paper', 'parameters', 'inference ms', 'NNS ms'], paper)}\n"
+    )
+    fgn_label, mps_label = simulator(FGN).label, simulator(GROUND_TRUTH).label
+    fgn = next((r for r in rows if r["simulator"] == fgn_label), None)
+    mps = next((r for r in rows if r["simulator"] == mps_label), None)
+    if fgn and mps:
+        paper_ratio = (313.2 + 42.3) / (5.7 + 46.4)
+        cells = [
+            ["FGN, ours", fgn["parameters"], fgn["inference_ms"], fgn["neighbor_search_ms"], fgn["step_ms"]],
+            ["MPS, ours", "-", mps["inference_ms"], mps["neighbor_search_ms"], mps["step_ms"]],
+            ["FGN, paper (GPU)", 41996, 5.7, 46.4, 5.7 + 46.4],
+            ["MPS, paper (GPU)", "-", 313.2, 42.3, 313.2 + 42.3],
+        ]
+        report.readme["table2"] = (
+            f"**Table 2** (`{p.timing_scene}`, {fmt(mps['fluid_particles'])} fluid particles; "
+            f"{report.meta['machine']}):\n\n"
+            + md_table(["", "parameters", "inference ms", "NNS ms", "step ms"], cells)
+            + f"\n\n- MPS / FGN time per step: ours {fmt(fgn['speedup_vs_mps'])}, paper {fmt(paper_ratio)} "
+            f"(inference alone: ours {fmt(ratio(mps['inference_ms'], fgn['inference_ms']))}, paper "
+            f"{fmt(313.2 / 5.7)}).\n"
+        )
+
+
+def part_table3(bench: Bench, report: Report, dam_runs: list[Run]) -> None:
+    """Tables 1 and 3: accuracy of every simulator against MPS on the dam and the water fall."""
+    p = bench.profile
+    rows = table3_rows("dam", dam_runs)
+    if p.waterfall:
+        rows += table3_rows("waterfall", bench.table3_runs("waterfall"))
+    report.csv("table3", rows)
+    cases = {
+        "dam": f"`{p.dam_scene}`, {p.dam_duration:g} s",
+        "waterfall": f"`waterfall` {' '.join(p.waterfall or ())}, {p.waterfall_duration:g} s",
+    }
+    keys = ("density_error_mean", "density_error_max", "divergence_mean_per_s", "divergence_max_per_s")
+    keys += ("chamfer_mean_mm", "chamfer_max_mm")
+    header = ["density error mean", "max", "divergence mean (1/s)", "max", "Chamfer mean (mm)", "max"]
+    cells = [[cases[r["case"]], r["simulator"], *(r[k] for k in keys), r["status"]] for r in rows]
+    report.sections["table3"] = (
+        "## Tables 1 and 3: accuracy against MPS\n\n"
+        "`task=evaluate` for every simulator: the same initial state, MPS as the reference. Density error "
+        "and divergence over the stored frames (mean and max); Chamfer distance (eq. 29) to MPS at the same "
+        "time, mean and max over the frames. The MPS row is the ground truth's own density error and "
+        "divergence.\n\n"
+        + md_table(["case", "simulator", *header, "status"], cells, "ll" + "r" * 6 + "l")
+        + "\n"
+    )
+    ours, lines = [], []
+    fgn_label = simulator(FGN).label
+    for case in ("dam", "waterfall"):
+        fgn = next((r for r in rows if r["case"] == case and r["simulator"] == fgn_label), None)
+        gt = next((r for r in rows if r["case"] == case and r["simulator"].startswith("Ground")), None)
+        p_fgn, p_gt = PAPER_TABLE1[(case, "FGN")], PAPER_TABLE1[(case, "Ground truth")]
+        ours += [[case, "FGN, paper", *p_fgn], [case, "Ground truth, paper", *p_gt]]
+        for who, r in (("FGN, ours", fgn), ("Ground truth (MPS), ours", gt)):
+            if r:
+                ours.append([case, who, *(r[k] for k in keys)])
+        if fgn and gt:
+            lines.append(
+                f"- {case}: FGN / MPS density error {fmt(ratio(fgn[keys[0]], gt[keys[0]]))} (paper "
+                f"{fmt(p_fgn[0] / p_gt[0])}), divergence {fmt(ratio(fgn[keys[2]], gt[keys[2]]))} (paper "
+                f"{fmt(p_fgn[2] / p_gt[2])}); FGN's Chamfer distance to MPS {fmt(fgn[keys[4]])} mm (paper "
+                f"{p_fgn[4]} mm); FGN {fgn['status']}."
+            )
+    ours.sort(key=lambda r: (r[0], "paper" in r[1], r[1]))
+    report.readme["table1"] = (
+        f"**Table 1** (dam: {cases['dam']}; "
+        f"water fall: {cases['waterfall'] if p.waterfall else 'not run'}):\n\n"
+        + md_table(["case", "", *header], ours, "ll" + "r" * 6)
+        + "\n\n"
+        + "\n".join(lines)
+        + "\n"
+    )
+
+
+def part_fig5(bench: Bench, report: Report, fig5: tuple[list[Run], float | None, float | None]) -> None:
+    """Fig. 5: FGN's Chamfer distance against time for increasing dt; the largest dt that completes."""
+    p = bench.profile
+    runs, stable, stopped = fig5
+    frames = [((r.metrics or {}).get("frames") or {}).get("chamfer_mm") or [None] for r in runs]
+    rows = [
+        {
+            "dt_s": r.info["dt"],
+            "steps": (r.metrics or {}).get("steps"),
+            "chamfer_mean_mm": r.summary("chamfer_mm", "mean"),
+            "chamfer_max_mm": r.summary("chamfer_mm", "max"),
+            "chamfer_last_mm": math.nan if f[-1] is None else float(f[-1]),
+            "density_error_mean": r.summary("density_error", "model", "mean"),
+            "status": status(r),
+            **provenance_columns(r),
+        }
+        for r, f in zip(runs, frames, strict=True)
+    ]
+    report.csv("fig5", rows)
+    verdict = fig5_verdict(p.dam_duration, runs, stable, stopped)
+    png = report.path("fig5.png")
+    plot_fig5(png, runs, verdict, f"FGN vs MPS on {p.dam_scene} at several dt ({p.name} profile)")
+
+    def tail(r: dict[str, Any]) -> list[Any]:
+        return [r["chamfer_last_mm"], r["density_error_mean"], r["status"]]
+
+    cells = [
+        [fmt(1e3 * r["dt_s"]), *(r[k] for k in ("steps", "chamfer_mean_mm", "chamfer_max_mm")), *tail(r)]
+        for r in rows
+    ]
+    header = ["dt (ms)", "steps", "Chamfer mean (mm)", "max", "at the end", "density error mean", "status"]
+    report.sections["fig5"] = (
+        "## Fig. 5: FGN at other time steps\n\n"
+        f"FGN rolled out at each dt for {p.dam_duration:g} s against the MPS reference at the scene's dt, "
+        f"frames matched by time every {1e3 * p.frame_interval:g} ms. The sweep stops at the first dt the "
+        "rollout guard stops (NaN, a particle leaving the domain, or a Courant number max|v| dt / l0 above "
+        f"`solver.guard.max_courant`, 0.5); {verdict}.\n\n"
+        f"{md_table(header, cells, 'rrrrrrl')}\n\n![Fig. 5]({png.name})\n"
+    )
+    report.readme["fig5"] = f"**Fig. 5**: {verdict} (paper: FGN converges for every dt < 5 ms).\n"
+
+
+def fig5_verdict(duration: float, runs: list[Run], stable: float | None, stopped: float | None) -> str:
+    """One line on Fig. 5's sweep: the largest dt that completed and what stopped the next one."""
+    if stable is None and stopped is None:
+        return "no dt produced a rollout (every row failed, see the table)"
+    text = f"largest dt whose {duration:g} s rollout completes: {fmt(1e3 * stable) if stable else 'none'} ms"
+    if stopped is not None:
+        why = next((status(r).removeprefix("stopped: ") for r in runs if r.info.get("dt") == stopped), "")
+        return text + f"; the rollout guard stopped dt = {1e3 * stopped:g} ms ({why})"
+    failed = [r.info["dt"] for r in runs if not r.ok]
+    if failed:
+        return text + f"; dt = {', '.join(f'{1e3 * d:g}' for d in failed)} ms failed (see the table)"
+    return text + " (every dt tried completed; the largest tried is a lower bound)"
+
+
+def part_table4(bench: Bench, report: Report, dam_runs: list[Run]) -> None:
+    """Table 4: the advection net on held-out materials, the pressure net as a PPE solver."""
+    p = bench.profile
+    adv = bench.table4_runs()
+    # every dam row whose pressure stage is a network (the authors' too: a yardstick for the paper's 8.3 %)
+    pressure = [r for r in dam_runs if r.info.get("stages", {}).get("pressure") == "learned"]
+    rows = table4_rows(adv, pressure)
+    report.csv("table4", rows)
+    cells = [[r["network"], r["case"], r["mean"], r["std"], r["n"], r["status"]] for r in rows]
+    report.sections["table4"] = (
+        "## Table 4: the networks as stand-alone solvers\n\n"
+        f"Advection: {len(adv)} sequences on `{p.table4_scene}` ({p.table4_duration:g} s each) with held-out "
+        "gravity g (m/s^2) and viscosity nu (m^2/s), rolled out with learned advection and exact collision "
+        "and pressure (`table4_advection`); at every stored step the network's acceleration is compared with "
+        "`g + nu lap(v)` at the same input (normalised MAE, eq. 32). Pressure: the network's pressure in the "
+        "exact PPE at its own input (relative residual, eq. 31) over the stored steps of the dam rows "
+        "(hybrid: exact advection and collision, so its input is MPS's; FGN: its own rollout).\n\n"
+        + md_table(["network", "case", "mean", "std", "n", "status"], cells, "llrrrl")
+        + f"\n\nPaper: advection {PAPER_TABLE4['advection'][0]} % +- {PAPER_TABLE4['advection'][1]} %, "
+        f"pressure {PAPER_TABLE4['pressure'][0]} % +- {PAPER_TABLE4['pressure'][1]} %.\n"
+    )
+
+    def pct(r: dict[str, Any]) -> str:
+        return f"{fmt(100 * r['mean'])} % +- {fmt(100 * r['std'])} %"
+
+    adv_all = next(r for r in rows if r["case"] == "all sequences")
+    cells = [
+        ["advection", f"normalised MAE, {adv_all['n']} held-out (g, nu)", pct(adv_all), "12.4 % +- 5.6 %"]
+    ]
+    cells += [
+        ["pressure", f"PPE relative residual, {r['case']}", pct(r), "8.3 % +- 1.1 %"]
+        for r in rows
+        if r["network"] == "pressure"
+    ]
+    report.readme["table4"] = (
+        "**Table 4** (mean +- std):\n\n"
+        + md_table(["network", "metric", "ours", "paper"], cells, "llrr")
+        + "\n"
+    )
+
+
+def part_tradeoff(bench: Bench, report: Report, dam_runs: list[Run], fig5_runs: list[Run]) -> None:
+    """The speed/accuracy trade-off on the dam: every simulator, hybrids, FGN and MPS variants."""
+    p = bench.profile
+    runs = dam_runs + bench.tradeoff_runs() + [r for r in fig5_runs if r.key.startswith("fig5/")]
+    hashes = {r.metrics["reference"]["key_hash"] for r in runs if r.ok}
+    if len(hashes) > 1:  # a row file whose reference settings drifted from the others'
+        raise ConfigError(f"trade-off rows were compared with different MPS references: {sorted(hashes)}")
+    rows = tradeoff_rows(runs)
+    report.csv("tradeoff", rows)
+    png = report.path("tradeoff.png")
+    plot_tradeoff(png, rows, f"Speed/accuracy on {p.dam_scene}, {p.dam_duration:g} s ({p.name} profile)")
+    order = sorted(rows, key=lambda r: (not math.isfinite(r["s_per_simulated_s"]), r["s_per_simulated_s"]))
+    cells = [
+        [
+            r["simulator"],
+            r["s_per_simulated_s"],
+            r["ms_per_step_median"],
+            r["chamfer_mean_mm"],
+            r["chamfer_max_mm"],
+        ]
+        + [r["chamfer_t0_mm"], r["density_error_mean"]]
+        + ["yes" if r[f"pareto_{m}"] else "" for m in TRADEOFF_METRICS]
+        + [r["status"]]
+        for r in order
+    ]
+    header = ["simulator", "s per simulated s", "ms/step", "Chamfer mean (mm)", "max", "at t = 0"]
+    header += ["density error", "front: Chamfer", "front: density", "status"]
+    report.sections["tradeoff"] = (
+        "## Speed/accuracy trade-off\n\n"
+        f"Every simulator on `{p.dam_scene}` for {p.dam_duration:g} s against one reference: MPS at the "
+        "default settings (PPE to the absolute tolerance 1e-6, the scene's dt and l0; every row has the same "
+        "reference hash). Cost: wall seconds of the steps per simulated second (writing and metrics "
+        "excluded), the rows run one after another in one process. Accuracy: the Chamfer distance to the "
+        "reference (mean over the frames) and the simulator's own density error. A run at a coarser spacing "
+        "is compared in physical units in the frame of the boundary surface; its Chamfer distance includes "
+        "the lattice offset already there at t = 0 (a coarse particle sits between reference particles; "
+        "column 'at t = 0'). On the front: no other complete row is both cheaper and at least as accurate."
+        "\n\n"
+        f"{md_table(header, cells, 'lrrrrrrccl')}\n\n![trade-off]({png.name})\n"
+    )
+    front = [r["simulator"] for r in order if r["pareto_chamfer_mean_mm"]]
+    report.readme["tradeoff"] = (
+        f"**Trade-off** ([plot](benchmarks/results/{png.name})): on the time/Chamfer front, cheapest first: "
+        f"{'; '.join(front) or '-'}.\n\n![trade-off](benchmarks/results/{png.name})\n"
+    )

@@ -1,0 +1,110 @@
+"""The figures of the tables: paper Fig. 5 (FGN at other time steps) and the speed/accuracy trade-off."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from benchmarks.tables.bench import Run
+
+
+def plot_fig5(path: Path, runs: list[Run], verdict: str, title: str) -> None:
+    """Paper Fig. 5: FGN's Chamfer distance to MPS against time, one line per dt (dotted: stopped)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7.5, 4.5))
+    fig.subplots_adjust(left=0.1, right=0.97, bottom=0.12, top=0.88)
+    shown = [r for r in runs if r.ok]
+    cmap = plt.get_cmap("viridis")
+    for i, run in enumerate(shown):
+        frames = run.metrics["frames"]
+        t = np.asarray(frames["time_s"], dtype=float)
+        y = np.asarray([np.nan if v is None else v for v in frames["chamfer_mm"]], dtype=float)
+        label = f"dt = {1e3 * run.info['dt']:g} ms" + ("" if run.complete else " (stopped)")
+        colour = cmap(i / max(1, len(shown) - 1))
+        ax.plot(
+            t, y, "-" if run.complete else ":", color=colour, label=label, marker="." if len(t) < 30 else None
+        )
+    ax.set_xlabel("time (s)")
+    ax.set_ylabel("Chamfer distance to MPS (mm)")
+    ax.set_title(f"{title}\n{verdict}", fontsize=10)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _colour(name: str) -> str:
+    if "authors" in name:
+        return "C1"
+    if "hybrid" in name:
+        return "C2"
+    return "k" if name.startswith("MPS") else "C0"
+
+
+def plot_tradeoff(path: Path, rows: list[dict[str, Any]], title: str) -> None:
+    """Wall seconds per simulated second (log x) against the Chamfer distance and the density error.
+
+    Points are numbered (the key beside the panels names them), the Pareto front is a staircase: at any
+    cost on the x axis, the front's height is the smallest error a run at most that expensive achieved.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
+
+    done = [r for r in rows if r["status"] == "complete" and math.isfinite(r["s_per_simulated_s"])]
+    done.sort(key=lambda r: r["s_per_simulated_s"])
+    fig, axes = plt.subplots(1, 2, figsize=(15, 6.2))
+    fig.subplots_adjust(left=0.05, right=0.8, bottom=0.1, top=0.86, wspace=0.2)
+    panels = (
+        ("chamfer_mean_mm", "Chamfer distance to the reference MPS, mean over frames (mm)", "symlog"),
+        ("density_error_mean", "density error, mean over frames", "log"),
+    )
+    x_max = max((r["s_per_simulated_s"] for r in done), default=1.0)
+    for ax, (metric, ylabel, yscale) in zip(axes, panels, strict=True):
+        for number, r in enumerate(done, start=1):
+            colour = _colour(r["simulator"])
+            hollow = math.isfinite(r["chamfer_t0_mm"]) and r["chamfer_t0_mm"] > 0
+            x, y = r["s_per_simulated_s"], r[metric]
+            ax.scatter(x, y, s=36, facecolors="none" if hollow else colour, edgecolors=colour, zorder=3)
+            ax.annotate(str(number), (x, y), fontsize=8, xytext=(4, 3), textcoords="offset points")
+        front = [r for r in done if r[f"pareto_{metric}"]]
+        if front:
+            # a staircase carried on to the right: no budget beyond the last point buys more accuracy
+            xs = [r["s_per_simulated_s"] for r in front] + [1.3 * x_max]
+            ys = [r[metric] for r in front] + [front[-1][metric]]
+            ax.step(xs, ys, where="post", color="C3", lw=1.5, label="Pareto front", zorder=2)
+            ax.legend(loc="upper right", fontsize=8)
+        ax.set_xscale("log")
+        values = [r[metric] for r in done if math.isfinite(r[metric])]
+        positive = [v for v in values if v > 0]
+        if yscale == "symlog":  # MPS against itself is exactly 0: linear below the smallest positive error
+            ax.set_yscale("symlog", linthresh=min(positive, default=1e-3))
+            ax.set_ylim(0.0, 2.0 * max(values, default=1.0))
+        elif positive:
+            ax.set_yscale("log")
+            ax.set_ylim(0.7 * min(positive), 1.5 * max(positive))
+        ax.xaxis.set_major_locator(LogLocator(subs=(1.0, 2.0, 5.0)))
+        ax.xaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
+        ax.xaxis.set_minor_formatter(NullFormatter())
+        ax.set_xlabel("wall seconds per simulated second (log)")
+        ax.set_ylabel(ylabel)
+        ax.grid(alpha=0.3, which="both")
+    key = "\n".join(f"{i:2d}  {r['simulator']}" for i, r in enumerate(done, start=1))
+    fig.text(0.815, 0.86, key, fontsize=8, va="top", family="monospace")
+    sub = "black: MPS, blue: FGN, green: hybrids, orange: authors' FGN; hollow: coarser spacing (its Chamfer "
+    sub += "includes the lattice offset at t = 0)"
+    stopped = [r["simulator"] for r in rows if r not in done]
+    if stopped:
+        sub += "\nnot shown (stopped or failed): " + ", ".join(stopped)
+    fig.suptitle(f"{title}\n{sub}", fontsize=10)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

@@ -1,0 +1,166 @@
+"""Which simulators the tables compare, in which order and under which label: registry plus row files.
+
+A simulator of the tables is a key ``K`` with row files in Hydra's ``experiment`` group: ``table2_K``
+(Table 2) and ``table3_<case>_K`` (Tables 1/3, one per case). Each row file says how the tables show it::
+
+    table: {label: "hybrid: learned pressure", order: 2, weights: fgn}
+
+``label`` names the row (default: the key), ``order`` places it (smallest first; rows without one follow,
+by key), ``weights`` says which weights the tables pass (:data:`WEIGHTS`). A registered simulator that no
+row file runs (``lagfluid.registry.available_simulators``) is listed after them and run as
+``model=<name>`` with its defaults. So a new simulator is a registry entry plus its row files; nothing in
+``benchmarks/`` names it.
+
+The block is read from each row *composed by Hydra* (not from the yaml file): the tables then see every
+row Hydra can run (``conf/experiment/``, a plugin's config folder on the search path, a ConfigStore node)
+and the model the row really composes to. Config files may add keys in struct mode (only command-line
+overrides need ``+``), so ``table`` needs no declaration in ``config.yaml``; a run of the row carries it
+unused.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import re
+from collections.abc import Sequence
+from dataclasses import dataclass
+from functools import cache
+from pathlib import Path
+from typing import Any
+
+from omegaconf import OmegaConf
+
+from benchmarks.tables.config import compose_config, experiment_names
+from lagfluid.errors import ConfigError
+from lagfluid.registry import available_simulators
+
+REPO = Path(__file__).resolve().parents[2]
+
+# The FGN authors' published networks, kept beside a checkout (never in the repository, never shipped):
+# the default of the ``weights: authors`` rows, a cross-check of our scheme against weights nobody here
+# trained. Where it is missing those rows fail and are reported as failed; the other rows run.
+AUTHORS_WEIGHTS = REPO.parent / "shared" / "reference" / "fgn_original" / "checkpoints"
+
+WEIGHTS = {
+    "none": "the row's own config (MPS; a model that finds its own weights)",
+    "fgn": "--weights DIR when given (FGN's three checkpoints), else the model's default (shipped weights)",
+    "authors": "the FGN authors' published networks (AUTHORS_WEIGHTS)",
+}
+
+# Table 3's cases: the row files ``table3_<case>_<key>``.
+CASES = ("dam", "waterfall")
+
+# The rows the paper's parts single out: its ground truth, its model, and the hybrid whose advection net
+# Table 4 rolls out on held-out materials.
+GROUND_TRUTH, FGN, LEARNED_ADVECTION = "mps", "fgn", "hybrid_advection"
+
+_ROW = re.compile(rf"^table(?:2|3_(?:{'|'.join(CASES)}))_(?P<key>.+)$")
+_BLOCK_KEYS = {"label", "order", "weights"}
+
+
+@dataclass(frozen=True)
+class Simulator:
+    """One simulator of the tables: its key (row files ``table3_<case>_<key>``, ``table2_<key>``).
+
+    Attributes:
+        key: the rows' key (``hybrid_pressure``).
+        label: the tables' name of it (``hybrid: learned pressure``).
+        model: the registered simulator its rows compose to (``model=...``), used for a row without a file.
+        weights: which weights the tables pass, a key of :data:`WEIGHTS`.
+    """
+
+    key: str
+    label: str
+    model: str
+    weights: str = "none"
+
+    def model_overrides(self, weights_dir: str | None) -> list[str]:
+        """The ``model.weights`` override of this simulator's rows (``weights_dir``: ``--weights``)."""
+        if self.weights == "authors":  # relative when possible: the commands in the report stay portable
+            return [f"model.weights={os.path.relpath(AUTHORS_WEIGHTS)}"]
+        if self.weights == "fgn" and weights_dir:
+            return [f"model.weights={weights_dir}"]
+        return []
+
+
+@cache
+def _row(name: str) -> tuple[str, dict[str, Any]]:
+    """The model name and the ``table`` block of ``experiment=<name>``, checked.
+
+    Raises:
+        ConfigError: the row does not compose, or its block has an unknown key or a bad value.
+    """
+    try:
+        cfg = compose_config([f"experiment={name}"])
+    except Exception as err:
+        raise ConfigError(f"row file experiment={name} does not compose: {err}") from err
+    block = cfg.get("table")
+    block = {} if block is None else OmegaConf.to_container(block, resolve=True)
+    if not isinstance(block, dict) or set(block) - _BLOCK_KEYS:
+        raise ConfigError(
+            f"experiment={name}: table must be a mapping of {sorted(_BLOCK_KEYS)}, got {block!r}"
+        )
+    weights = block.get("weights", "none")
+    if weights not in WEIGHTS:
+        raise ConfigError(f"experiment={name}: table.weights '{weights}' is not one of {', '.join(WEIGHTS)}")
+    order = block.get("order", math.inf)
+    if not isinstance(order, (int, float)) or isinstance(order, bool):
+        raise ConfigError(f"experiment={name}: table.order must be a number, got {order!r}")
+    return str(cfg.model.name), block
+
+
+def _from_rows(key: str, names: Sequence[str]) -> tuple[float, Simulator]:
+    """The simulator ``key`` as its row files ``names`` describe it, and its order.
+
+    Raises:
+        ConfigError: two row files of the key disagree (label, order, weights or model).
+    """
+    seen: dict[tuple[str, str, str, float], str] = {}
+    for name in names:
+        model, block = _row(name)
+        seen.setdefault(
+            (str(block.get("label", key)), model, block.get("weights", "none"), block.get("order", math.inf)),
+            name,
+        )
+    if len(seen) > 1:
+        described = "; ".join(f"{n}: label, model, weights, order = {v}" for v, n in seen.items())
+        raise ConfigError(f"the row files of '{key}' describe it differently ({described})")
+    (label, model, weights, order), _ = next(iter(seen.items()))
+    return float(order), Simulator(key, label, model, weights)
+
+
+def all_simulators(keys: Sequence[str] | None = None) -> list[Simulator]:
+    """Every simulator with row files (by ``order``), then every registered one without (by name).
+
+    Args:
+        keys: keep only these keys (None: all).
+
+    Raises:
+        ConfigError: a row file that does not compose or whose ``table`` block is bad.
+    """
+    rows: dict[str, list[str]] = {}
+    for name in experiment_names():
+        match = _ROW.match(name)
+        if match:
+            rows.setdefault(match["key"], []).append(name)
+    described = sorted(
+        (_from_rows(key, names) for key, names in rows.items()), key=lambda o: (o[0], o[1].key)
+    )
+    sims = [sim for _, sim in described]
+    known = {s.model for s in sims}
+    sims += [Simulator(n, n, n) for n in available_simulators() if n not in known]
+    return [s for s in sims if keys is None or s.key in keys]
+
+
+def simulator(key: str) -> Simulator:
+    """The simulator ``key`` of :func:`all_simulators`.
+
+    Raises:
+        ConfigError: no simulator has that key (the message lists them).
+    """
+    sims = all_simulators()
+    for sim in sims:
+        if sim.key == key:
+            return sim
+    raise ConfigError(f"no simulator '{key}' in the tables; available: {', '.join(s.key for s in sims)}")
