@@ -136,7 +136,7 @@ def profile_config(name: str) -> DictConfig:
 
 @functools.cache
 def _composed_profile(name: str) -> DictConfig:
-    # Cached: composing the whole config takes ~0.1 s, and every simulator of a report asks for it.
+    # Cached: every simulator of a report asks for it, and composing the whole config is not free.
     available = sorted(p.stem for p in (CONF_DIR / "solver").glob("*.yaml"))
     if name not in available:
         raise SystemExit(f"unknown solver profile '{name}'; available: {', '.join(available)}")

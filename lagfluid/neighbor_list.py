@@ -15,9 +15,8 @@ walls within 3.1 l0 of those, at the current positions (so the set never depends
 rebuilt). Dummy particles and farther walls only ever appear as sources, so a scene's boundary costs work
 only where the fluid is ("model only what the scene requires"). The pressure solve treats the farther
 walls as p = 0. Why two hops: a wall within 3.1 l0 of the fluid pushes it, and its own pressure is
-coupled through the Laplacian to the walls one radius further. Measured on ``dam_small`` after 21 steps
-(PPE to relative 1e-10), against solving every wall (the authors, ``wall_hops=None``): one hop moves the
-fluid pressure by up to 19 Pa of a 2.6 kPa peak (0.7 %), two hops by 0.29 Pa (0.01 %).
+coupled through the Laplacian to the walls one radius further; two hops come within 0.01 % of solving
+every wall (the authors, ``wall_hops=None``), one hop does not (``benchmarks/results/neighbors_notes.md``).
 """
 
 from __future__ import annotations
@@ -39,8 +38,7 @@ def take_edges(edge_index: Tensor, index: Tensor, out: Tensor | None = None) -> 
     """``edge_index[:, index]``: the (2, K) columns ``index`` (K,) of a (2, E) edge index.
 
     One 1-D gather per row, optionally into ``out`` (2, K) (a column slice of a larger edge index): on the
-    CPU ``index_select`` along dim 1 of a (2, E) tensor takes ~2x as long (1.2 M of 2.4 M edges, two
-    threads: 8.1 ms against 3.4 ms into ``out``).
+    CPU ``index_select`` along dim 1 of a (2, E) tensor is slower (``benchmarks/results/neighbors_notes.md``).
     """
     if out is None:
         out = edge_index.new_empty((2, index.numel()))
@@ -83,7 +81,7 @@ class Graph:
         return self._take(torch.nonzero(keep).flatten(), self.radius)
 
     def _take(self, index: Tensor, radius: float) -> Graph:
-        # nonzero + index_select rather than boolean indexing: ~2x faster on the CPU for (E, 3) arrays.
+        # nonzero + index_select rather than boolean indexing: faster on the CPU for (E, 3) arrays.
         return Graph(
             take_edges(self.edge_index, index),
             self.rel.index_select(0, index),
@@ -190,7 +188,7 @@ class VerletNeighborList:
         and those walls are searched together (fluid rows first, so the edges come sorted by target exactly
         as :meth:`_search` concatenates them).
 
-        Measured on ``dam_medium`` / ``dam_large``: see :mod:`lagfluid.neighbors` (backend ``numba``).
+        Its speed on ``dam_medium`` / ``dam_large``: see ``benchmarks/results/neighbors_notes.md``.
         """
         if self.wall_hops is None:
             near_walls = walls.clone()
@@ -267,7 +265,7 @@ class VerletNeighborList:
             )
             return Graph(edges, rel, dist, radius)
         rel, dist = edge_vectors(pos, into_fluid)
-        # nonzero + index_select rather than boolean indexing: ~2x faster on the CPU for (E, 3) arrays.
+        # nonzero + index_select rather than boolean indexing: faster on the CPU for (E, 3) arrays.
         keep = torch.nonzero(dist < radius).flatten()
         if not with_walls:
             return Graph(
@@ -289,7 +287,7 @@ class VerletNeighborList:
         w_keep = torch.nonzero(within).flatten()
         # Wall targets come after every fluid target, so fluid rows then wall rows stay sorted by target.
         # Gathered straight into the two halves of one output rather than gathered then concatenated:
-        # the concatenation was a fifth of this method (dam_medium, 1.8 M edges: 16 of 77 ms).
+        # a concatenation pass costs a large share of this method (see benchmarks/results/neighbors_notes.md).
         k, e = keep.numel(), keep.numel() + w_keep.numel()
         edge_index = into_fluid.new_empty((2, e))
         take_edges(into_fluid, keep, out=edge_index[:, :k])

@@ -22,10 +22,8 @@ Conventions (shared with PyG, ``flow="source_to_target"``):
 Backends: ``"numba"`` (compiled parallel cell list, CPU default; :func:`lagfluid.pair_kernels.cell_search`),
 ``"scipy"`` (k-d tree, the CPU default without Numba), ``"torch_cluster"`` (optional compiled extension,
 CUDA default when installed), ``"cell_list"`` (pure torch cell list, any device), ``"brute"`` (chunked
-all-pairs, the reference for tests). Measured on ``dam_medium`` (58k particles, the 10k fluid particles as
-receivers, r = 4.03 l0: 2.4 M pairs, two threads): numba 66 ms, scipy 139 ms; the whole Verlet-list
-rebuild (one cell list, :class:`lagfluid.neighbor_list.VerletNeighborList`) 335 -> 98 ms at 10k fluid
-particles and 1,311 -> 275 ms at 40k.
+all-pairs, the reference for tests). The compiled cell list is the CPU default because it is the fastest
+there (see ``benchmarks/results/neighbors_notes.md``).
 """
 
 from __future__ import annotations
@@ -93,7 +91,7 @@ class NeighborOverflowError(ValueError):
 def _import_torch_cluster() -> ModuleType | None:
     """The ``torch_cluster`` module, or None when it is not installed (imported once, lazily).
 
-    It is optional because it compiles from source for ~20 min on machines without a matching wheel.
+    It is optional because it compiles from source (slowly) on machines without a matching wheel.
     """
     try:
         return importlib.import_module("torch_cluster")
@@ -157,7 +155,7 @@ def _sort_pairs(i: Tensor, j: Tensor, n: int) -> tuple[Tensor, Tensor]:
     shift = n <= 2**31
     key = (i << 32) | j if shift else i * n + j
     if key.device.type == "cpu":
-        # numpy's SIMD sort: 4.4M int64 keys in ~100 ms here, torch.sort took ~600 ms on this 2-core box.
+        # numpy's SIMD sort beats torch.sort on the CPU (see benchmarks/results/neighbors_notes.md).
         key = torch.from_numpy(np.sort(key.numpy()))
     else:
         key = torch.sort(key).values
@@ -275,12 +273,11 @@ def _search_scipy(
     """k-d tree search on the CPU (any input device; the result goes back to ``pos.device``).
 
     ``cKDTree.query_pairs(output_type="ndarray")`` lists each unordered pair once and returns one
-    array without Python objects. Measured here (jittered lattice, 39,304 particles, r = 3.1 l0,
-    2.2M unordered pairs, 2 cores): query_pairs 302 ms, sparse_distance_matrix(self) 624 ms,
-    query_ball_point(workers=-1) 1,554 ms + 292 ms to flatten its lists (at 2.1 l0: 154 / 270 / 679
-    + 104 ms). So pairs among receivers come from query_pairs (half the distance work, then mirrored);
-    only receiver <- non-receiver pairs need sparse_distance_matrix between two trees, and that touches
-    only the boundary layer next to the receivers. Non-receiver centres are never searched.
+    array without Python objects; it is the fastest of SciPy's queries (see
+    ``benchmarks/results/neighbors_notes.md``). So pairs among receivers come from query_pairs (half the
+    distance work, then mirrored); only receiver <- non-receiver pairs need sparse_distance_matrix
+    between two trees, and that touches only the boundary layer next to the receivers. Non-receiver
+    centres are never searched.
     """
     from scipy.spatial import cKDTree  # scipy is a dependency, imported here to keep import time low
 
@@ -587,12 +584,12 @@ def edge_vectors(pos: Tensor, edge_index: Tensor) -> tuple[Tensor, Tensor]:
         rel: (E, D) ``pos[j] - pos[i]``.
         dist: (E,) ``|pos[j] - pos[i]|``.
     """
-    # index_select, not pos[idx]: 3x faster for (E, 3) gathers on the CPU (measured: 5 ms vs 14 ms for
-    # 1.07M edges); the values are identical.
+    # index_select, not pos[idx]: faster for (E, 3) gathers on the CPU, identical values
+    # (see benchmarks/results/neighbors_notes.md).
     if not (pos.requires_grad and torch.is_grad_enabled()):
         # In place and on the squared components as one (E, D) array: the same operations in the same
-        # order as _distance (x*x + y*y, then + z*z), so bit-identical, but ~20 % faster than strided
-        # per-column products (measured on 1.6M edges, one thread: 68 ms vs 85 ms).
+        # order as _distance (x*x + y*y, then + z*z), so bit-identical, but faster than strided
+        # per-column products (see benchmarks/results/neighbors_notes.md).
         rel = pos.index_select(0, edge_index[0])
         rel.sub_(pos.index_select(0, edge_index[1]))
         sq = rel * rel
@@ -636,8 +633,7 @@ def kernel_adjacency(edge_index: Tensor, weight: Tensor, num_nodes: int | tuple[
 
     FGN's kernel-weighted neighbour sums (number density, gradient, Laplacian, the networks' linear
     aggregations) are all ``A @ X`` for some weights; one CSR product replaces a gather of ``X[j]``
-    (E x F) and an ``index_add``. Measured here at 40k nodes, 120 neighbours, 128 features: CSR
-    matmul 0.3 s vs gather + index_add 13 s (2 cores, shared machine).
+    (E x F) and an ``index_add``, and is far faster (see ``benchmarks/results/neighbors_notes.md``).
 
     Autograd (torch 2.13, checked by ``tests/test_neighbors.py``): ``A @ X`` is differentiable
     w.r.t. both the dense ``X`` and ``weight`` (the CSR values), including double backward; build

@@ -3,10 +3,9 @@
 Why our own kernels: the Verlet list (:mod:`lagfluid.neighbor_list`) filters every candidate pair by its
 current distance twice per MPS step, and as torch operations that pass materialises ``pos[src]``,
 ``pos[dst]``, ``rel``, ``rel * rel``, the mask and the ``nonzero`` index (each 1-10 M rows) before gathering
-the kept rows again. Measured on ``dam_large`` (40k fluid, 9.7 M candidate pairs into fluid, two threads):
-the torch filter takes ~170 ms per pass, of which the two ``(E, 3)`` gathers alone are 2 x 34 ms; these
-kernels read each candidate once from cache-resident positions and write only the kept pairs (numbers in
-``benchmarks/results/mps_speed.md``). Neither PyG nor SciPy filters an existing pair list.
+the kept rows again. These kernels read each candidate once from cache-resident positions and write only
+the kept pairs (measurements: ``benchmarks/results/neighbors_notes.md``). Neither PyG nor SciPy filters an
+existing pair list.
 
 The results are *bit-identical* to the torch path (:func:`lagfluid.neighbors.edge_vectors` followed by
 ``dist < radius``): the same float operations in the same order (``sqrt((x*x + y*y) + z*z)`` in the
