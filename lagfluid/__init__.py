@@ -15,11 +15,20 @@ def _register_config_resolvers() -> None:
 
     ``${lagfluid.if_task:TASK,NAME,A,B}`` is ``A`` when ``TASK == NAME``, else ``B``: ``steps`` is the data
     profile's for ``task=generate`` and 500 otherwise, and ``steps=N`` on the command line still sets it.
+    ``${lagfluid.plugin_configs:}`` is the plugins' config folders (:mod:`lagfluid.plugin_configs`).
     """
     from omegaconf import OmegaConf
 
     if not OmegaConf.has_resolver("lagfluid.if_task"):
         OmegaConf.register_new_resolver("lagfluid.if_task", lambda task, name, a, b: a if task == name else b)
+    if not OmegaConf.has_resolver("lagfluid.plugin_configs"):
+
+        def plugin_configs() -> list[str]:
+            from lagfluid.plugin_configs import plugin_search_path
+
+            return plugin_search_path()
+
+        OmegaConf.register_new_resolver("lagfluid.plugin_configs", plugin_configs)
 
 
 _register_config_resolvers()

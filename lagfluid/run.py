@@ -25,7 +25,10 @@ TASKS = ("simulate", "generate", "train", "evaluate")
 
 
 def _group_names(group: str) -> list[str]:
-    return sorted(p.stem for p in (CONF_DIR / group).glob("*.yaml"))
+    """Options of a config group: ``conf/<group>/*.yaml`` and the plugins' (lagfluid.plugin_configs)."""
+    from lagfluid.plugin_configs import group_options
+
+    return group_options(group, CONF_DIR)
 
 
 def available_models() -> list[str]:

@@ -42,7 +42,7 @@ LAYERS: dict[str, tuple[str, ...]] = {
     "physics": ("lagfluid.physics", "lagfluid.physics.*"),
     "metrics": ("lagfluid.metrics",),
     "data": ("lagfluid.data", "lagfluid.data.*"),
-    "registry": ("lagfluid.registry",),
+    "registry": ("lagfluid.registry", "lagfluid.plugin_configs"),
     "scenes": ("lagfluid.scenes", "lagfluid.scenes.*"),
     "viz": ("lagfluid.viz",),
     "operators": (
