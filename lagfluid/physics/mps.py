@@ -1,7 +1,7 @@
 """Exact (ground-truth) stages of the MPS solver: viscosity + gravity, the collision rule, the PPE.
 
 Koshizuka & Oka (1996) with the pressure solver of Lee et al. (2011), as in the FGN authors' code
-(``../shared/reference/FGN_ORIGINAL.md``, "MPS step"). Each class implements one stage protocol of
+("MPS step"). Each class implements one stage protocol of
 :mod:`lagfluid.physics.stages`; the learned stages of FGN implement the same protocols.
 """
 
