@@ -71,21 +71,23 @@ from lagfluid.errors import ConfigError, RolloutError
 from lagfluid.metrics import (
     FieldMetrics,
     chamfer_distance,
-    exact_context,
     field_metrics,
     kinetic_energy,
-    mps_constants,
-    mps_neighbor_list,
     mse_horizons,
     normalized_mae,
     position_mse,
-    ppe_relative_residual,
     relative_error,
     summarize,
 )
 from lagfluid.models.simulator import Simulator
 from lagfluid.neighbor_list import VerletNeighborList
 from lagfluid.physics.mps import ExactAdvection
+from lagfluid.physics.reference import (
+    exact_context,
+    mps_constants,
+    mps_neighbor_list,
+    ppe_relative_residual,
+)
 from lagfluid.physics.stages import MPSConstants, SolverSettings, lattice_constants, solver_identity
 from lagfluid.rollout import (
     Guard,

@@ -114,6 +114,14 @@ def test_free_surface_is_the_truncated_neighbourhoods_of_a_lattice(dtype):
             ops.free_surface(n, N0_21, beta)
 
 
+def test_ppe_unknowns_are_fluid_and_walls_off_the_surface():
+    ptype = torch.tensor([1, 1, 2, 2, 3, 3])  # fluid, wall, dummy
+    surface = torch.tensor([False, True, False, True, False, True])
+    assert ops.ppe_unknowns(ptype, surface).tolist() == [True, False, True, False, False, False]
+    with pytest.raises(ValueError, match="same shape"):
+        ops.ppe_unknowns(ptype, surface[:3])
+
+
 @pytest.mark.parametrize("dtype", DTYPES)
 def test_reference_density(dtype):
     pos, ei, interior, _ = lattice(dtype, 2.1)

@@ -25,6 +25,7 @@ import torch
 from torch import Tensor
 
 from lagfluid.neighbors import edge_vectors
+from lagfluid.state import ParticleType
 
 __all__ = [
     "corrected_pressure_gradient",
@@ -38,6 +39,7 @@ __all__ = [
     "laplacian_weights",
     "min_pressure_gradient",
     "number_density",
+    "ppe_unknowns",
     "reference_density",
 ]
 
@@ -177,6 +179,27 @@ def free_surface(n: Tensor, n0: float, beta: float) -> Tensor:
     if not 0 < beta <= 1:
         raise ValueError(f"the free-surface threshold beta must be in (0, 1], got {beta!r}")
     return n < beta * n0
+
+
+def ppe_unknowns(ptype: Tensor, surface: Tensor) -> Tensor:
+    """The pressure unknowns: fluid and wall particles off the free surface.
+
+    Free-surface particles are Dirichlet ``p = 0``; dummy particles carry no pressure (they only complete
+    the walls' number density). The exact PPE solves for these particles, the learned pressure stage
+    predicts for them.
+
+    Args:
+        ptype: (N,) particle types (:class:`~lagfluid.state.ParticleType`).
+        surface: (N,) bool, the free surface (:func:`free_surface`).
+
+    Returns:
+        Bool (N,), True for an unknown.
+    """
+    if ptype.shape != surface.shape:
+        raise ValueError(
+            f"ptype and surface must have the same shape, got {tuple(ptype.shape)} and {tuple(surface.shape)}"
+        )
+    return (ptype != ParticleType.DUMMY) & ~surface
 
 
 def reference_density(n: Tensor, mask: Tensor | None = None) -> Tensor:
