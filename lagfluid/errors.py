@@ -17,3 +17,7 @@ class ConfigError(LagfluidError, ValueError):
 
 class RolloutError(LagfluidError, RuntimeError):
     """A rollout stopped by its guard: NaN/inf, a particle leaving the domain, Courant number too high."""
+
+
+class MetricInputError(LagfluidError, ValueError):
+    """Arrays given to a metric have the wrong shape, are empty or do not correspond."""

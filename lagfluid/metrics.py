@@ -14,9 +14,10 @@ Comparisons of a prediction with a reference (paper section 4 "Metrics", Lagrang
 * :func:`position_mse`: mean squared position error per coordinate, LagrangeBench's ``mse`` (particles keep
   their index, so particle ``i`` of one rollout is particle ``i`` of the other);
 * :func:`kinetic_energy` and :func:`relative_error`: relative error of the total fluid kinetic energy;
-* :func:`normalized_mae`: normalised mean absolute error, paper eqs. 30 and 32;
-* :func:`ppe_relative_residual`: relative residual of a pressure field in the discretised pressure Poisson
-  equation, paper eq. 31, assembled exactly as the MPS solver's pressure stage assembles it.
+* :func:`normalized_mae`: normalised mean absolute error, paper eqs. 30 and 32.
+
+The PPE residual of a pressure field (paper eq. 31) is scored in the exact MPS system: it is a one-step
+reference of that solver and lives with it (:func:`lagfluid.physics.reference.ppe_relative_residual`).
 
 Over a run, "mean" is the mean of the per-frame values and "max" their maximum (:func:`summarize`).
 """
@@ -32,28 +33,25 @@ import torch
 from scipy.spatial import cKDTree
 from torch import Tensor
 
-from lagfluid.errors import LagfluidError
-from lagfluid.neighbor_list import VerletNeighborList
+from lagfluid.errors import MetricInputError
 from lagfluid.neighbors import edge_vectors, radius_graph
 from lagfluid.physics import operators as ops
-from lagfluid.physics.mps import CollisionRule, ExactAdvection, ExactPressure
-from lagfluid.physics.ppe import PPESystem, assemble_ppe, ppe_residual, ppe_source
-from lagfluid.physics.stages import (
-    MPSConstants,
-    SolverSettings,
-    SplitStepSimulator,
-    StageTimer,
-    StepContext,
-    initial_constants,
-    lattice_constants,
-)
-from lagfluid.state import ParticleState, ParticleType
+from lagfluid.state import ParticleType
+
+__all__ = [
+    "FieldMetrics",
+    "MetricInputError",
+    "chamfer_distance",
+    "field_metrics",
+    "kinetic_energy",
+    "mse_horizons",
+    "normalized_mae",
+    "position_mse",
+    "relative_error",
+    "summarize",
+]
 
 ArrayLike = np.ndarray | Tensor
-
-
-class MetricInputError(LagfluidError, ValueError):
-    """Arrays given to a metric have the wrong shape, are empty or do not correspond."""
 
 
 def _as_f64(values: ArrayLike, name: str) -> np.ndarray:
@@ -131,7 +129,7 @@ def field_metrics(
     div = ops.divergence(
         pos, edge_index[:, dist < re_gradient], vel, re_gradient, n0, dim=dim, num_nodes=pos.shape[0]
     )
-    interior = fluid & (n >= surface_beta * n0)
+    interior = fluid & ~ops.free_surface(n, n0, surface_beta)
     if not bool(interior.any()):
         return FieldMetrics(0.0, 0.0, 0)
     return FieldMetrics(
@@ -275,109 +273,3 @@ def normalized_mae(pred: ArrayLike, target: ArrayLike) -> float:
     if not keep.any():
         return float("nan")
     return float(np.mean(err[keep] / scale[keep]))
-
-
-# ------------------------------------------------------------------------------------------- PPE residual
-def mps_constants(state: ParticleState, settings: SolverSettings) -> MPSConstants:
-    """``n0``, ``n0_lap``, ``lambda`` as the MPS solver takes them (``settings.n0_from``) for this scene."""
-    if settings.n0_from == "lattice":
-        return lattice_constants(state.params.l0, settings, state.params.dim)
-    return initial_constants(state, settings)
-
-
-def exact_context(
-    state: ParticleState,
-    settings: SolverSettings,
-    constants: MPSConstants,
-    neighbors: VerletNeighborList | None = None,
-) -> StepContext:
-    """A step context at ``state`` with the MPS solver's neighbour list, to evaluate exact stages there.
-
-    Args:
-        state: positions, velocities and types where the stages are evaluated.
-        settings: solver settings (radii, wall hops, skin, backend).
-        constants: MPS constants of the scene.
-        neighbors: a neighbour list to reuse across calls (it rebuilds itself when needed and its graphs are
-            exact at any positions); a fresh one at the MPS solver's cutoff when None.
-    """
-    if neighbors is None:
-        neighbors = mps_neighbor_list(state, settings)
-    return StepContext(state, settings, constants, neighbors, StageTimer())
-
-
-def mps_neighbor_list(state: ParticleState, settings: SolverSettings) -> VerletNeighborList:
-    """A Verlet list with the MPS solver's cutoff, skin, backend and wall hops (so the same wall targets)."""
-    mps = SplitStepSimulator("mps", settings, ExactAdvection(), CollisionRule(), ExactPressure())
-    l0 = state.params.l0
-    cutoff = mps.cutoff(state.params) * l0
-    skin = settings.neighbor_skin_fraction * cutoff
-    return VerletNeighborList(cutoff, skin, settings.neighbor_backend, settings.wall_hops)
-
-
-def exact_ppe(ctx: StepContext) -> tuple[PPESystem, Tensor]:
-    """The MPS pressure Poisson system ``A p = b`` at ``ctx.state``, as the exact pressure stage builds it.
-
-    Mirrors :class:`lagfluid.physics.mps.ExactPressure`: free surface ``n_i < beta n0`` (Dirichlet ``p = 0``),
-    unknowns the non-free-surface fluid and wall particles (walls within the solver's wall hops), source
-    ``b_i = -gamma_div div(v)_i / dt + gamma_n (n_i - n0) / (dt^2 n0)``, matrix the Laplacian model at
-    ``re_laplacian`` (:func:`lagfluid.physics.ppe.assemble_ppe`).
-
-    Args:
-        ctx: context at the pressure stage's input ``(x**, v**)`` (see :func:`exact_context`).
-
-    Returns:
-        The assembled system and the source ``b`` (N,) of every particle.
-    """
-    s, c, params = ctx.settings, ctx.constants, ctx.params
-    pos, vel, ptype = ctx.state.pos, ctx.state.vel, ctx.state.ptype
-    n_all = pos.shape[0]
-    g_lap = ctx.graph(pos, s.re_laplacian)
-    g_n = ctx.graph(pos, s.re_density)
-    g_div = ctx.graph(pos, s.re_gradient)
-    n = ops.number_density(
-        pos, g_n.edge_index, ctx.radius(s.re_density), num_nodes=n_all, geometry=g_n.geometry
-    )
-    surface = n < s.surface_beta * c.n0
-    div = ops.divergence(
-        pos,
-        g_div.edge_index,
-        vel,
-        ctx.radius(s.re_gradient),
-        c.n0,
-        dim=params.dim,
-        num_nodes=n_all,
-        geometry=g_div.geometry,
-    )
-    b = ppe_source(div, n, c.n0, params.dt, **s.ppe_source_weights(params.dt))
-    coef = ops.laplacian_weights(g_lap.dist, ctx.radius(s.re_laplacian), c.n0_lap, c.lam, dim=params.dim)
-    system = assemble_ppe(
-        g_lap.edge_index,
-        coef,
-        (ptype != ParticleType.DUMMY) & ~surface,
-        params.density,
-        dirichlet_mask=surface & (ptype != ParticleType.DUMMY),
-    )
-    return system, b
-
-
-def ppe_relative_residual(ctx: StepContext, pressure: Tensor) -> float:
-    """Relative residual of a pressure field in the discretised PPE, paper eq. 31.
-
-    ``tol = ||A p - b||_2 / ||b||_2`` with ``A``, ``b`` the exact MPS system at ``ctx.state``
-    (:func:`exact_ppe`) and ``p`` the given pressure restricted to its unknowns (the pressure stage's
-    output before the negative-pressure clamp). 0 for the exact solution, 1 for ``p = 0``, ``|a|`` for
-    ``(1 + a) p_exact``. When ``b = 0`` the absolute ``||A p||`` is returned (as
-    :func:`lagfluid.physics.ppe.ppe_residual`).
-
-    Args:
-        ctx: context at the pressure stage's input ``(x**, v**)``.
-        pressure: (N,) pressure of every particle.
-    """
-    n_all = ctx.state.pos.shape[0]
-    if not isinstance(pressure, Tensor) or pressure.shape != (n_all,):
-        raise MetricInputError(
-            f"pressure must be an ({n_all},) tensor, one value per particle, "
-            f"got {getattr(pressure, 'shape', None)}"
-        )
-    system, b = exact_ppe(ctx)
-    return ppe_residual(system, system.gather(pressure.to(b.dtype)), system.gather(b))

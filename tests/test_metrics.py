@@ -1,6 +1,7 @@
 """Every metric against a case computed by hand (lagfluid.metrics)."""
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -11,18 +12,15 @@ from lagfluid.config import build_initial_state, build_simulator
 from lagfluid.metrics import (
     MetricInputError,
     chamfer_distance,
-    exact_context,
-    exact_ppe,
     field_metrics,
     kinetic_energy,
-    mps_constants,
     mse_horizons,
     normalized_mae,
     position_mse,
-    ppe_relative_residual,
     relative_error,
     summarize,
 )
+from lagfluid.physics.reference import exact_context, exact_ppe, mps_constants, ppe_relative_residual
 from lagfluid.physics.stages import SolverSettings
 from lagfluid.run import CONF_DIR
 from lagfluid.state import ParticleState
@@ -198,3 +196,16 @@ def test_ppe_residual_of_scaled_and_zero_pressure_by_hand(mps_pressure_step):
     assert ppe_relative_residual(ctx, torch.zeros_like(p)) == pytest.approx(1.0, rel=1e-12)
     with pytest.raises(MetricInputError, match="one value per particle"):
         ppe_relative_residual(ctx, p[:10])
+
+
+def test_metrics_know_no_simulator():
+    # Simulator-neutral: importing the metrics loads neither a solver nor its stages or PPE.
+    import subprocess
+    import sys
+
+    code = "import sys, lagfluid.metrics; print(sorted(m for m in sys.modules if m.startswith('lagfluid')))"
+    root = Path(__file__).resolve().parents[1]  # this checkout's lagfluid, not an installed one
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=root)
+    for module in ("physics.stages", "physics.mps", "physics.ppe", "physics.reference", "models"):
+        assert f"'lagfluid.{module}" not in run.stdout, run.stdout
+    assert "'lagfluid.physics.operators'" in run.stdout  # (the check sees what was imported)

@@ -39,6 +39,22 @@ def test_lattice_constants_match_the_analytic_lattice_values():
     assert c.lam / 0.05**2 == pytest.approx(3.2434, abs=1e-4)
 
 
+def test_reference_neighbour_list_has_the_solver_cutoff_without_building_a_solver():
+    from lagfluid.physics.mps import exact_cutoff
+    from lagfluid.physics.reference import mps_neighbor_list
+
+    state = fluid_block(3, 3, 3)
+    for viscosity in (0.0, 1e-6):
+        params = SceneParams(viscosity=viscosity)
+        sim = mps(re_laplacian=3.4)
+        assert exact_cutoff(sim.settings, params) == sim.cutoff(params) == 3.4  # the PPE's Laplacian
+    sim = mps()
+    sim.reset(state)
+    listed = mps_neighbor_list(state, sim.settings)
+    same = ("cutoff", "skin", "backend", "wall_hops")
+    assert [getattr(listed, k) for k in same] == [getattr(sim.neighbors, k) for k in same]
+
+
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_fluid_block_in_free_fall_follows_the_discrete_kinematics_exactly(dtype):
     # A block without walls: interior particles have n = n0 and div v = 0, so the PPE source vanishes,

@@ -94,6 +94,35 @@ def test_number_density_lattice(dtype, re_factor, expected):
 
 
 @pytest.mark.parametrize("dtype", DTYPES)
+def test_free_surface_is_the_truncated_neighbourhoods_of_a_lattice(dtype):
+    # At 2.1 l0 every site within 2 layers of a face misses neighbours. In the second layer only the (0, 0, 2)
+    # kind is missing (w = 2.1/2 - 1 = 0.05 each, at most 3 of them: n >= 0.989 n0); a site of the outer layer
+    # misses at least the nearest one (w = 1.1: n <= 0.73 n0). So beta = 0.97 flags the outer layer only,
+    # beta = 0.999 every truncated site (n <= 0.9965 n0), and an interior site is never on the surface.
+    pos, ei, interior, idx = lattice(dtype, 2.1)
+    n = ops.number_density(pos, ei, 2.1 * L0)
+    everything_truncated = ops.free_surface(n, N0_21, 0.999)
+    assert everything_truncated.dtype == torch.bool and everything_truncated.shape == n.shape
+    assert torch.equal(everything_truncated, ~interior)
+    outer = ((idx == 0) | (idx == SIDE - 1)).any(dim=1)
+    assert torch.equal(ops.free_surface(n, N0_21, 0.97), outer)
+    # the rule itself, by hand: strictly below beta n0
+    n_hand = torch.tensor([0.0, 0.969, 0.97, 1.2], dtype=dtype)
+    assert ops.free_surface(n_hand, 1.0, 0.97).tolist() == [True, True, False, False]
+    for beta in (0.0, 1.5, -0.1):
+        with pytest.raises(ValueError, match="beta"):
+            ops.free_surface(n, N0_21, beta)
+
+
+def test_ppe_unknowns_are_fluid_and_walls_off_the_surface():
+    ptype = torch.tensor([1, 1, 2, 2, 3, 3])  # fluid, wall, dummy
+    surface = torch.tensor([False, True, False, True, False, True])
+    assert ops.ppe_unknowns(ptype, surface).tolist() == [True, False, True, False, False, False]
+    with pytest.raises(ValueError, match="same shape"):
+        ops.ppe_unknowns(ptype, surface[:3])
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
 def test_reference_density(dtype):
     pos, ei, interior, _ = lattice(dtype, 2.1)
     n = ops.number_density(pos, ei, 2.1 * L0)

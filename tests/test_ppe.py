@@ -10,8 +10,9 @@ import pytest
 import torch
 from scipy.spatial import cKDTree
 
-from lagfluid.physics import ppe
 from lagfluid.physics.ppe import PPEInfo, assemble_ppe, ppe_residual, ppe_source, solve_ppe
+from lagfluid.physics.ppe import solve as ppe_solve
+from lagfluid.physics.ppe import system as ppe_system
 
 RHO = 1000.0
 L0 = 0.05
@@ -451,7 +452,7 @@ def test_empty_system_and_zero_rhs(tank):
 
 
 def test_pyamg_missing_falls_back_loudly(tank, monkeypatch, caplog):
-    monkeypatch.setattr(ppe, "pyamg_available", lambda: False)
+    monkeypatch.setattr(ppe_solve, "pyamg_available", lambda: False)
     system = assemble(tank)
     with caplog.at_level(logging.WARNING, logger="lagfluid.physics.ppe"):
         _, info = solve_ppe(system, torch.ones(system.num_unknowns, dtype=torch.float64), method="pyamg")
@@ -496,10 +497,10 @@ def test_trusted_assembly_and_scipy_merge_equal_the_checked_torch_path(tank, mon
 
     def torch_merge(crow, cols, off, diag, k, idt):
         rows = torch.repeat_interleave(torch.arange(k), torch.diff(crow))
-        crow2, col, val, _ = ppe._csr_with_diagonal(rows, cols, off, diag, k)
+        crow2, col, val, _ = ppe_system._csr_with_diagonal(rows, cols, off, diag, k)
         return torch.sparse_csr_tensor(crow2.to(idt), col.to(idt), val, (k, k), check_invariants=False)
 
-    monkeypatch.setattr(ppe, "_csr_plus_diagonal_scipy", torch_merge)
+    monkeypatch.setattr(ppe_system, "_csr_plus_diagonal_scipy", torch_merge)
     all_torch = assemble(tank, dtype=torch.float32)
     for other in (trusted, all_torch):
         assert torch.equal(other.matrix.crow_indices(), checked.matrix.crow_indices())
@@ -521,7 +522,7 @@ def test_pcg_jacobi_matches_scipy_cg(big_tank):
     for start in (None, x0):
         iters.clear()
         ref, _ = spla.cg(a, b, x0=start, rtol=0.0, atol=1e-9, maxiter=500, M=precond, callback=iters.append)
-        x, n = ppe._pcg_jacobi(a, b, start, 1e-9, 500)
+        x, n = ppe_solve._pcg_jacobi(a, b, start, 1e-9, 500)
         assert abs(n - len(iters)) <= 1
         assert np.linalg.norm(b - a @ x) <= 1e-9
         np.testing.assert_allclose(x, ref, rtol=0, atol=1e-8 * np.abs(ref).max())
@@ -532,7 +533,7 @@ def _csr_arrays(system):
     return m.crow_indices(), m.col_indices(), m.values(), system.isolated, system.index
 
 
-@pytest.mark.skipif(not ppe._compiled_assembly_applies(torch.zeros(1)), reason="numba not installed")
+@pytest.mark.skipif(not ppe_system._compiled_assembly_applies(torch.zeros(1)), reason="numba not installed")
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 @pytest.mark.parametrize("case", ["tank", "blob", "enclosed", "empty_row", "zero_weights"])
 def test_compiled_assembly_equals_the_torch_assembly(monkeypatch, caplog, dtype, case):
@@ -556,7 +557,7 @@ def test_compiled_assembly_equals_the_torch_assembly(monkeypatch, caplog, dtype,
         coef[edge_index[1] == edge_index[0][::7][0]] = 0.0
     caplog.set_level(logging.WARNING, logger="lagfluid.physics.ppe")
     compiled = assemble_ppe(edge_index, coef, solve, RHO, dirichlet_mask=dirichlet, check=False)
-    monkeypatch.setattr(ppe, "_compiled_assembly_applies", lambda coef: False)
+    monkeypatch.setattr(ppe_system, "_compiled_assembly_applies", lambda coef: False)
     reference = assemble_ppe(edge_index, coef, solve, RHO, dirichlet_mask=dirichlet, check=False)
     for got, want in zip(_csr_arrays(compiled), _csr_arrays(reference), strict=True):
         assert got.dtype == want.dtype and torch.equal(got, want)

@@ -18,16 +18,11 @@ from omegaconf import DictConfig
 from lagfluid.config import run_attributes
 from lagfluid.data.store import TrajectoryWriter
 from lagfluid.errors import RolloutError
-from lagfluid.metrics import (
-    exact_context,
-    mps_constants,
-    mps_neighbor_list,
-    normalized_mae,
-    ppe_relative_residual,
-)
+from lagfluid.metrics import normalized_mae
 from lagfluid.models.simulator import Simulator
 from lagfluid.neighbor_list import VerletNeighborList
 from lagfluid.physics.mps import ExactAdvection
+from lagfluid.physics.reference import exact_context, mps_constants, mps_neighbor_list, ppe_relative_residual
 from lagfluid.physics.stages import MPSConstants, SolverSettings, SplitStepFields
 from lagfluid.rollout import Guard, rollout, timing_summary
 from lagfluid.state import ParticleState

@@ -25,11 +25,13 @@ import torch
 from torch import Tensor
 
 from lagfluid.neighbors import edge_vectors
+from lagfluid.state import ParticleType
 
 __all__ = [
     "corrected_pressure_gradient",
     "divergence",
     "edge_geometry",
+    "free_surface",
     "gradient",
     "kernel",
     "laplacian",
@@ -37,6 +39,7 @@ __all__ = [
     "laplacian_weights",
     "min_pressure_gradient",
     "number_density",
+    "ppe_unknowns",
     "reference_density",
 ]
 
@@ -78,7 +81,7 @@ def edge_geometry(pos: Tensor, edge_index: Tensor, geometry: Geometry | None = N
 
     Every operator takes an optional ``geometry`` keyword: a caller that already holds ``rel`` and ``dist``
     of its graph (the solver does, from its neighbour list) passes them in, and the operator skips the
-    gather of ``pos`` over all edges (measured: ~10 ms per call at 4k fluid particles, 80k edges per ms).
+    gather of ``pos`` over all edges (see ``benchmarks/results/operators.md``).
 
     Args:
         pos: positions, shape (N, 3).
@@ -152,6 +155,51 @@ def _masked_argmax(n: Tensor, mask: Tensor | None) -> Tensor:
     if not bool(mask.any()):
         raise ValueError("mask selects no particle: cannot take a reference density")
     return torch.argmax(torch.where(mask, n, torch.full_like(n, -torch.inf)))
+
+
+def free_surface(n: Tensor, n0: float, beta: float) -> Tensor:
+    """The MPS free-surface rule: ``n_i < beta n0``.
+
+    A particle whose number density falls below ``beta n0`` has neighbours missing on one side: it is on the
+    free surface (Dirichlet ``p = 0`` in the PPE), and its density deficit is geometry, not compression (the
+    field metrics leave it out). Written once here for the solver, the learned pressure stage and the
+    metrics.
+
+    Args:
+        n: number densities, shape (N,), at the density radius ``re_density``.
+        n0: reference number density at that radius.
+        beta: threshold, in (0, 1] (the authors: 0.97).
+
+    Returns:
+        Bool (N,), True on the free surface.
+
+    Raises:
+        ValueError: when ``beta`` is outside (0, 1].
+    """
+    if not 0 < beta <= 1:
+        raise ValueError(f"the free-surface threshold beta must be in (0, 1], got {beta!r}")
+    return n < beta * n0
+
+
+def ppe_unknowns(ptype: Tensor, surface: Tensor) -> Tensor:
+    """The pressure unknowns: fluid and wall particles off the free surface.
+
+    Free-surface particles are Dirichlet ``p = 0``; dummy particles carry no pressure (they only complete
+    the walls' number density). The exact PPE solves for these particles, the learned pressure stage
+    predicts for them.
+
+    Args:
+        ptype: (N,) particle types (:class:`~lagfluid.state.ParticleType`).
+        surface: (N,) bool, the free surface (:func:`free_surface`).
+
+    Returns:
+        Bool (N,), True for an unknown.
+    """
+    if ptype.shape != surface.shape:
+        raise ValueError(
+            f"ptype and surface must have the same shape, got {tuple(ptype.shape)} and {tuple(surface.shape)}"
+        )
+    return (ptype != ParticleType.DUMMY) & ~surface
 
 
 def reference_density(n: Tensor, mask: Tensor | None = None) -> Tensor:
@@ -379,9 +427,8 @@ def corrected_pressure_gradient(
     )  # (size, dim, dim)
     adjugate, det = _adjugate(moments)
     invertible = det >= min_determinant
-    # Explicit inverse of the small matrices (10k 3 x 3 on 2 CPU threads: batched torch.linalg.det + solve
-    # 1.4 ms, the adjugate 0.5 ms; neither is the cost of this operator: its extra passes over the edges are,
-    # 23 ms against the minimum-pressure gradient's 8 ms on dam_medium's 344k fluid-target edges).
+    # Explicit inverse of the small matrices: cheaper than batched det + solve, and not this operator's cost
+    # (its extra passes over the edges are; see benchmarks/results/operators.md).
     solved = (adjugate @ plain[:, :dim].unsqueeze(-1)).squeeze(-1) / torch.where(
         invertible, det, 1.0
     ).unsqueeze(-1)
@@ -516,8 +563,7 @@ def _compiled_laplacian(
     Applies on the CPU without autograd, for edges sorted by target (the neighbour list's graphs) and
     ``num_nodes`` no larger than the number of rows of ``values``. The same numbers as the torch
     operations (weights, differences, products and the per-row sum in edge order), without the (E, C)
-    gathers and the scatter: the MPS ``advection`` stage at 40k fluid particles (4.7 M edges, C = 3, two
-    threads, ``python -m benchmarks.mps_speed --threads 2``) 121 -> 18 ms per step.
+    gathers and the scatter (several times faster: see ``benchmarks/results/operators.md``).
     """
     from lagfluid import pair_kernels
 

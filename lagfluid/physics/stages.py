@@ -402,6 +402,36 @@ class PressureStage(Protocol):
         ...
 
 
+def stage_cutoff(
+    settings: SolverSettings,
+    params: SceneParams,
+    advection: AdvectionStage | None,
+    collision: CollisionStage | None,
+    pressure: PressureStage | None,
+) -> float:
+    """Largest radius (in l0) a split step with these stages searches for this scene: its neighbour cutoff.
+
+    A stage reports its radii with ``radii(settings, params)``; a stage without that method is assumed to
+    need every radius of the settings; a pressure stage adds the correction's ``re_gradient``. FGN needs
+    2.1 l0 where MPS needs 3.1 l0 (the Laplacian): a list at 2.1 + skin holds ~2.6x fewer candidate pairs
+    to filter every step.
+
+    Args:
+        settings: scheme coefficients and radii.
+        params: the scene's physical parameters (a stage's radii may depend on them, e.g. viscosity).
+        advection: the advection stage, ``None`` when skipped.
+        collision: the collision stage, ``None`` when skipped.
+        pressure: the pressure stage, ``None`` when skipped.
+    """
+    needed: list[float] = [settings.re_gradient] if pressure is not None else []
+    for stage in (advection, collision, pressure):
+        if stage is None:
+            continue
+        radii = getattr(stage, "radii", None)
+        needed += list(radii(settings, params)) if radii else [settings.max_radius]
+    return max(needed, default=settings.re_collision)
+
+
 class SplitStepSimulator:
     """The advect -> collide -> project -> correct scheme with any mix of exact and learned stages.
 
@@ -465,17 +495,9 @@ class SplitStepSimulator:
     def cutoff(self, params: SceneParams) -> float:
         """Largest radius (in l0) the configured stages use for this scene: the neighbour list's cutoff.
 
-        A stage reports its radii with ``radii(settings, params)``; a stage without that method is assumed
-        to need every radius of the settings. FGN needs 2.1 l0 where MPS needs 3.1 l0 (the Laplacian): a
-        list at 2.1 + skin holds ~2.6x fewer candidate pairs to filter every step.
+        See :func:`stage_cutoff`.
         """
-        needed: list[float] = [self.settings.re_gradient] if self.pressure is not None else []
-        for stage in (self.advection, self.collision, self.pressure):
-            if stage is None:
-                continue
-            radii = getattr(stage, "radii", None)
-            needed += list(radii(self.settings, params)) if radii else [self.settings.max_radius]
-        return max(needed, default=self.settings.re_collision)
+        return stage_cutoff(self.settings, params, self.advection, self.collision, self.pressure)
 
     @property
     def last_timings(self) -> dict[str, float]:

@@ -62,8 +62,8 @@ def component_labels(crow, col):
     """(K,) int64 connected-component label of every row of the pattern ``crow``/``col``.
 
     Labels 0, 1, ... in order of each component's first row, by depth-first search: what SciPy's
-    ``connected_components`` returns for a symmetric pattern, without its conversions (SciPy took
-    ~45 ms per step at 40k fluid particles, 5 M entries).
+    ``connected_components`` returns for a symmetric pattern, without its conversions (which cost more
+    than the search itself: see ``benchmarks/results/ppe.md``).
     """
     k = crow.shape[0] - 1
     labels = np.full(k, -1, dtype=np.int64)
