@@ -1,6 +1,7 @@
 """FGN networks, learned stages, checkpoints, the authors' weights and training (seconds)."""
 
 import csv
+import functools
 import json
 from pathlib import Path
 
@@ -13,14 +14,16 @@ from torch_geometric.data import Batch, Data
 
 from lagfluid.data.generate import generate
 from lagfluid.errors import ConfigError, LagfluidError
-from lagfluid.models import fgn as fgn_mod
-from lagfluid.models.checkpoint import CheckpointError, build_network, load_network, read_checkpoint
-from lagfluid.models.fgn_original import load_original_network
-from lagfluid.physics.learned import compact_nodes
+from lagfluid.models.checkpoint import CheckpointError, read_checkpoint
+from lagfluid.models.fgn import networks as fgn_mod
+from lagfluid.models.fgn.networks import build_network, load_network
+from lagfluid.models.fgn.original import load_original_network
+from lagfluid.models.fgn.stages import compact_nodes
+from lagfluid.models.fgn.trainables import build_trainables
 from lagfluid.rollout import build_initial_state, build_simulator, simulate
 from lagfluid.run import CONF_DIR
 from lagfluid.state import ParticleType
-from lagfluid.train import StageTask, learning_rate, train
+from lagfluid.train import learning_rate, train
 
 SHARED = Path(__file__).resolve().parents[2] / "shared"
 
@@ -31,6 +34,11 @@ AUTHORS_WEIGHTS = SHARED / "reference" / "fgn_original" / "checkpoints"
 def _compose(*overrides):
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         return compose(config_name="config", overrides=list(overrides))
+
+
+@functools.cache
+def _trainables():
+    return build_trainables(_compose("task=train", "model=fgn"))
 
 
 def _model_options(kind, model="fgn"):
@@ -81,7 +89,7 @@ def _outputs(nets, data):
     batch = data if isinstance(data, Batch) else Batch.from_data_list([data])
     out = {}
     for kind, net in nets.items():
-        pred, _ = StageTask(kind).predict(net, batch)
+        pred, _ = _trainables()[kind].predict(net, batch)
         out[kind] = pred
     return out
 
@@ -410,7 +418,7 @@ def test_exported_weights_drop_the_optimizer_and_still_load(trained, tmp_path):
 
 def test_shipped_weights_fit_the_fgn_config_and_roll_out_by_default(tmp_path):
     """``model=fgn`` works out of the box: the packaged weights exist, match conf/model/fgn.yaml, roll out."""
-    from lagfluid.models.fgn_simulator import SHIPPED_WEIGHTS
+    from lagfluid.models.fgn.simulator import SHIPPED_WEIGHTS
 
     assert (SHIPPED_WEIGHTS / "MODEL_CARD.md").is_file()
     options = yaml.safe_load((CONF_DIR / "model" / "fgn.yaml").read_text())

@@ -1,0 +1,117 @@
+"""``model=fgn``, ``model=hybrid`` and ``model=fgn_original``: the split-step scheme with learned stages.
+
+The update scheme is MPS's (:class:`~lagfluid.physics.stages.SplitStepSimulator`); ``model.stages`` picks,
+per stage, ``learned`` (the network), ``exact`` (the MPS stage) or ``none`` (skip it), so a user can trade
+speed for accuracy stage by stage (e.g. exact advection + learned pressure).
+
+Weights: ``model.weights`` is a directory holding ``advection.pt``, ``collision.pt`` and ``pressure.pt``
+(:mod:`lagfluid.models.checkpoint`, as ``task=train`` writes them) or, with ``model.format=original``, the
+authors' arrays (:mod:`lagfluid.models.fgn.original`). ``null`` means the weights shipped in the package
+(``lagfluid/weights/fgn``, see its MODEL_CARD.md).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+from typing import Any
+
+import torch
+from omegaconf import OmegaConf
+
+from lagfluid.errors import ConfigError
+from lagfluid.models.checkpoint import CheckpointError
+from lagfluid.models.fgn.networks import KINDS, load_network, parameter_count
+from lagfluid.models.fgn.original import load_original_network
+from lagfluid.models.fgn.stages import LearnedAdvection, LearnedCollision, LearnedPressure
+from lagfluid.physics.mps import CollisionRule, ExactAdvection, ExactPressure
+from lagfluid.physics.stages import SolverSettings, SplitStepSimulator
+
+log = logging.getLogger(__name__)
+
+SHIPPED_WEIGHTS = Path(__file__).resolve().parents[2] / "weights" / "fgn"
+CHOICES = ("learned", "exact", "none")
+_EXACT = {"advection": ExactAdvection, "collision": CollisionRule, "pressure": ExactPressure}
+_LEARNED = {"advection": LearnedAdvection, "collision": LearnedCollision, "pressure": LearnedPressure}
+
+
+class LearnedSplitStep(SplitStepSimulator):
+    """A :class:`SplitStepSimulator` that also reports where its networks came from."""
+
+    def __init__(self, *args: Any, networks: dict[str, Any], **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.networks = networks
+
+    @property
+    def parameters(self) -> int:
+        """Trainable parameters of the learned stages (0 when every stage is exact)."""
+        return sum(int(n["parameters"]) for n in self.networks.values())
+
+    def attributes(self) -> dict[str, Any]:
+        """MPS constants plus ``networks`` (JSON: per learned stage its file, format, step, parameters)."""
+        return {**super().attributes(), "networks": json.dumps(self.networks)}
+
+
+def _plain(node: Any) -> dict[str, Any]:
+    return OmegaConf.to_container(node, resolve=True) if OmegaConf.is_config(node) else dict(node or {})
+
+
+def load_stage_network(kind: str, model_cfg: Any) -> tuple[torch.nn.Module, dict[str, Any]]:
+    """The network of stage ``kind`` for a model config (``cfg.model``) and a description of its source."""
+    fmt = model_cfg.get("format", "lagfluid")
+    weights = model_cfg.get("weights")
+    if fmt == "original":
+        if weights in (None, "???"):
+            raise ConfigError("model=fgn_original needs model.weights=<directory of adv_net.npz, ...>")
+        net = load_original_network(kind, _plain(model_cfg[kind]), weights)
+        return net, {"source": str(weights), "format": "original"}
+    if fmt != "lagfluid":
+        raise ConfigError(f"model.format must be 'lagfluid' or 'original', got {fmt!r}")
+    directory = Path(weights) if weights else SHIPPED_WEIGHTS
+    path = directory / f"{kind}.pt"
+    if not path.is_file():
+        hint = (
+            "no weights are shipped for it yet; train them with python -m lagfluid.run task=train "
+            f"stage={kind} and pass model.weights=<run dir>"
+            if weights is None
+            else "pass the out_dir of a task=train run, or model.weights=null for the shipped ones"
+        )
+        raise CheckpointError(f"{kind} network not found: {path}; {hint}")
+    net, ckpt = load_network(path, kind)
+    configured = _plain(model_cfg.get(kind))
+    differs = {k: (v, ckpt["options"].get(k)) for k, v in configured.items() if ckpt["options"].get(k) != v}
+    if differs:  # the checkpoint's own options win: they are what the weights were trained with
+        log.info("%s network from %s uses its own options where the config differs: %s", kind, path, differs)
+    return net, {"source": str(path), "format": "lagfluid", "step": ckpt["step"]}
+
+
+def build_split_step(cfg: Any) -> LearnedSplitStep:
+    """Build ``cfg.model`` (fgn, hybrid, fgn_original) as a :class:`SplitStepSimulator`."""
+    model = cfg.model
+    stages = _plain(model.stages)
+    unknown = {k: v for k, v in stages.items() if k not in KINDS or v not in CHOICES}
+    if unknown or set(stages) != set(KINDS):
+        raise ConfigError(
+            f"model.stages must give each of {', '.join(KINDS)} one of {', '.join(CHOICES)}; got {stages}"
+        )
+    dtype = getattr(torch, str(cfg.get("dtype", "float32")))
+    device = torch.device(str(cfg.get("device", "cpu")))
+    impl: dict[str, Any] = {}
+    sources: dict[str, Any] = {}
+    for kind in KINDS:
+        if stages[kind] == "exact":
+            impl[kind] = _EXACT[kind]()
+        elif stages[kind] == "learned":
+            net, source = load_stage_network(kind, model)
+            net = net.to(device=device, dtype=dtype)
+            impl[kind] = _LEARNED[kind](net)
+            sources[kind] = {**source, "parameters": parameter_count(net)}
+        else:
+            impl[kind] = None
+    settings = SolverSettings.from_config(cfg.solver)
+    sim = LearnedSplitStep(
+        str(model.name), settings, impl["advection"], impl["collision"], impl["pressure"], networks=sources
+    )
+    log.info("model %s: stages %s; networks %s", model.name, stages, sources)
+    return sim
