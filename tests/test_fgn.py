@@ -290,7 +290,7 @@ def test_training_lowers_the_loss_and_checkpoints_load_weights_only(trained, kin
     assert len(losses) == 12
     assert np.mean(losses[-3:]) < 0.8 * np.mean(losses[:3]), losses
     ckpt = torch.load(trained / f"{kind}.pt", weights_only=True)  # no pickled code
-    assert ckpt["step"] == 60 and ckpt["kind"] == kind
+    assert ckpt["step"] == 60 and ckpt["kind"] == kind and ckpt["model"] == "fgn"
     net, _ = load_network(trained / f"{kind}.pt", kind)
     assert net.target.std.ne(1).any()  # statistics travel with the weights
 
@@ -428,6 +428,10 @@ def test_shipped_weights_fit_the_fgn_config_and_roll_out_by_default(tmp_path):
         # A config edit that the shipped weights were not trained with must fail here, not at a user's run.
         assert ckpt["options"] == options[kind], kind
         assert "optimizer" not in ckpt and ckpt["step"] > 0 and path.stat().st_size < 1_000_000
+        # written before checkpoints named their model: read as FGN's, refused as another model's
+        assert "model" not in torch.load(path, weights_only=True) and ckpt["model"] == "fgn"
+        with pytest.raises(CheckpointError, match="model 'fgn', expected 'gns'"):
+            read_checkpoint(path, kind, model="gns")
     cfg = _compose("task=simulate", "model=fgn", "scene=dam_small", "steps=20", f"out_dir={tmp_path}")
     assert cfg.model.weights is None
     metrics = simulate(cfg)

@@ -21,13 +21,13 @@ Predictions and targets are standardised by the network's own statistics (its ``
 magnitude and viscosity every time it is drawn (``train.materials.gravity``, ``viscosity``, log-uniform or
 uniform) and its label is recomputed exactly, ``a = g + nu lap(v)`` with the MPS Laplacian of the stored
 velocities (the operator the solver applies). Labels stay exact; only the flow states come from water.
-Why the range reaches down to water: ``lagfluid/weights/fgn/MODEL_CARD.md``. Without it the labels are the
+Why the range reaches down to water: ``docs/training.md``. Without it the labels are the
 stored ones, which for water (nu = 1e-6) are ``g`` to 6 digits.
 
-**Normalisation.** Statistics of inputs and targets are fitted here from training items (they depend on
-the network's radius, its features and the material draws, which the dataset does not know) and stored in
-the network's buffers, hence in every checkpoint. ``metadata.json``'s statistics describe the data; no
-network reads them.
+**Normalisation.** Statistics of inputs and targets are fitted here from training items and stored in the
+network's buffers, hence in every checkpoint: the one source, since they depend on the network's radius,
+features and material draws, which the dataset cannot know (``metadata.json``'s statistics only describe
+the data; no network reads them).
 """
 
 from __future__ import annotations
@@ -155,7 +155,7 @@ class CachedDataset(torch.utils.data.Dataset):
 
     With ``graph=(radius_l0, fluid_receivers_only)`` each item also keeps its kernel graph
     (``edge_index``, ``edge_dist``), which PyG's batching offsets per sample: the radius search is a large
-    share of an iteration, for ~3 MB of memory per sample.
+    share of an iteration (see ``docs/training.md``).
     """
 
     def __init__(self, dataset: Any, graph: tuple[float, bool] | None = None) -> None:
