@@ -450,3 +450,35 @@ def test_stage_losses_and_an_unknown_loss_is_named():
     assert float(stage_loss(pred, target, "huber", delta=1.0)) == pytest.approx((0.125 + 99.5) / 3)
     with pytest.raises(ConfigError, match="'l1'"):
         stage_loss(pred, target, "l1")
+
+
+def test_the_learned_advection_stage_sees_what_training_sees():
+    """Inference (learned stage in the scheme) and training (trainable on a batch) build the same inputs."""
+    from lagfluid.models.fgn.stages import LearnedAdvection
+    from lagfluid.models.mps_simulator import build_mps
+    from lagfluid.physics.stages import StageTimer, StepContext
+    from lagfluid.scenes import build_scene
+
+    net = _nets()["advection"]
+    state = build_scene("dam", fluid_size=[6, 6, 8], tank_size=[15, 8])
+    nf = state.n_fluid
+    vel = state.vel.clone()
+    vel[:nf] = 0.3 * torch.randn(nf, 3, generator=torch.Generator().manual_seed(7))
+    sim = build_mps(_compose("model=mps"))
+    sim.reset(state)
+    ctx = StepContext(state, sim.settings, sim.constants, sim.neighbors, StageTimer())
+    with torch.no_grad():
+        acc = LearnedAdvection(net)(ctx, state.pos, vel)
+        p = state.params
+        item = Data(
+            pos=state.pos,
+            vel=vel,
+            ptype=state.ptype,
+            gravity=torch.tensor([list(p.gravity)]),
+            viscosity=torch.tensor([p.viscosity]),
+            l0=torch.tensor([p.l0]),
+            y=torch.zeros(nf, 3),
+        )
+        pred, _ = _trainables()["advection"].predict(net, Batch.from_data_list([item]))
+    assert acc.abs().max() > 0
+    torch.testing.assert_close(net.target.inverse(pred), acc, atol=1e-5, rtol=1e-5)
