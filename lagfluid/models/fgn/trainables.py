@@ -233,7 +233,7 @@ class FGNStage:
         return train, valid
 
     def identity(self) -> dict[str, Any]:
-        """No settings beyond the network's options."""
+        """No settings beyond the network's options (``materials: None`` keeps older runs' fingerprints)."""
         return {"materials": None}
 
     @staticmethod
