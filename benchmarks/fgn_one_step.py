@@ -1,6 +1,7 @@
 """One-step accuracy of FGN's three networks on the held-out test split of a generated dataset.
 
-Each network sees the test scenes' samples exactly as in training (``lagfluid.train.StageTask``) and is
+Each network sees the test scenes' samples exactly as in training (its trainable's ``predict``,
+:mod:`lagfluid.models.fgn.trainables`) and is
 scored in physical units:
 
 * advection: normalised MAE (paper eq. 32) of the acceleration, with gravity and viscosity drawn afresh
@@ -27,6 +28,7 @@ import csv
 import os
 from pathlib import Path
 from statistics import mean, median
+from typing import Any
 
 import numpy as np
 import torch
@@ -35,11 +37,11 @@ from torch_geometric.data import Batch
 
 from benchmarks.provenance import markdown, provenance
 from lagfluid.metrics import normalized_mae
-from lagfluid.models.checkpoint import KINDS, load_network
-from lagfluid.models.fgn_simulator import SHIPPED_WEIGHTS
+from lagfluid.models.fgn.networks import KINDS, load_network
+from lagfluid.models.fgn.simulator import SHIPPED_WEIGHTS
+from lagfluid.models.fgn.trainables import ResampledMaterials, build_trainables
 from lagfluid.physics.stages import SolverSettings
 from lagfluid.run import CONF_DIR
-from lagfluid.train import DATASETS, ResampledMaterials, StageTask
 
 RESULTS = Path(__file__).resolve().parent / "results"
 # The paper's Table 4 test materials: |g| in m/s^2 and nu in m^2/s (drawn log-uniformly here).
@@ -47,7 +49,7 @@ TABLE4_GRAVITY, TABLE4_VISCOSITY = (1.0, 100.0), (1.0e-4, 0.1)
 
 
 def _physical(net: torch.nn.Module, kind: str, pred: torch.Tensor, target: torch.Tensor) -> tuple:
-    """Undo the standardisation of ``StageTask.predict``'s outputs: (prediction, target) in SI units."""
+    """Undo the standardisation of the trainable's ``predict`` outputs: (prediction, target) in SI units."""
     if kind == "collision":  # scaled only: a velocity change has no offset
         return pred * net.target.std, target * net.target.std
     if kind == "pressure":  # (M,) <-> the (M, 1) the standardizer holds
@@ -55,9 +57,9 @@ def _physical(net: torch.nn.Module, kind: str, pred: torch.Tensor, target: torch
     return net.target.inverse(pred), net.target.inverse(target)
 
 
-def score(kind: str, net: torch.nn.Module, items: list) -> dict[str, float]:
-    """Per-sample scores of ``net`` on ``items`` (PyG ``Data``), averaged."""
-    task = StageTask(kind)
+def score(task: Any, net: torch.nn.Module, items: list) -> dict[str, float]:
+    """Per-sample scores of ``net`` on ``items`` (PyG ``Data``) through trainable ``task``, averaged."""
+    kind = task.name
     values: dict[str, list[float]] = {}
     with torch.no_grad():
         for item in items:
@@ -99,10 +101,11 @@ def main(argv: list[str] | None = None) -> None:
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         cfg = compose(config_name="config", overrides=["task=train"])
     settings = SolverSettings.from_config(cfg.solver)
+    trainables = build_trainables(cfg)
     rows = []
     for kind in KINDS:
         net, ckpt = load_network(Path(args.weights) / f"{kind}.pt", kind)
-        data = DATASETS[kind](args.data, split=args.split)
+        data = trainables[kind].samples(args.data, split=args.split)
         pick = range(min(len(data), args.max_samples))
         variants = {"test split": data}
         if kind == "advection":
@@ -111,7 +114,7 @@ def main(argv: list[str] | None = None) -> None:
             )
             variants = {"held-out g in [1, 100], nu in [1e-4, 0.1]": held_out, "water (stored labels)": data}
         for name, dataset in variants.items():
-            result = score(kind, net, [dataset[i] for i in pick])
+            result = score(trainables[kind], net, [dataset[i] for i in pick])
             rows.append({"network": kind, "case": name, "step": ckpt["step"], **result})
             print(rows[-1], flush=True)
     prov = provenance(

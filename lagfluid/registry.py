@@ -1,11 +1,14 @@
-"""Name -> simulator registry.
+"""Name -> simulator and name -> trainables registries.
 
-Built-in simulators register with :func:`register_simulator`; plugins (``baselines/`` and third-party
-packages) register through the ``lagfluid.simulators`` entry-point group, so ``lagfluid`` never imports
-them. Scenes are looked up in :data:`lagfluid.scenes.SCENES`.
+Built-ins are named in this module; plugins (``baselines/`` and third-party packages) register through
+the entry-point groups ``lagfluid.simulators`` and ``lagfluid.trainables``, so ``lagfluid`` never imports
+them; :func:`register_simulator` and :func:`register_trainables` register in-process (tests). Scenes are
+looked up in :data:`lagfluid.scenes.SCENES`.
 
-A factory is called as ``factory(cfg)`` with the resolved Hydra config (an ``omegaconf.DictConfig``) and
-returns an object implementing :class:`lagfluid.models.simulator.Simulator`.
+Factories are called as ``factory(cfg)`` with the resolved Hydra config (an ``omegaconf.DictConfig``). A
+simulator factory returns an object implementing :class:`lagfluid.models.simulator.Simulator`; a
+trainables factory, registered under the model's name, returns ``{name: trainable}`` (each implementing
+:class:`lagfluid.models.trainable.Trainable`), the networks ``task=train`` trains for that model.
 """
 
 from __future__ import annotations
@@ -20,18 +23,26 @@ from lagfluid.errors import LagfluidError
 log = logging.getLogger(__name__)
 
 ENTRY_POINT_GROUP = "lagfluid.simulators"
+TRAINABLES_GROUP = "lagfluid.trainables"
 
 SimulatorFactory = Callable[[Any], Any]
+TrainablesFactory = Callable[[Any], dict[str, Any]]
 
 # Built-ins are named here as "module:attribute" and imported only when used, so importing the registry
 # (e.g. to validate a command line) stays cheap.
 _BUILTIN: dict[str, str] = {
     "mps": "lagfluid.models.mps_simulator:build_mps",
-    "fgn": "lagfluid.models.fgn_simulator:build_split_step",
-    "hybrid": "lagfluid.models.fgn_simulator:build_split_step",
-    "fgn_original": "lagfluid.models.fgn_simulator:build_split_step",
+    "fgn": "lagfluid.models.fgn.simulator:build_split_step",
+    "hybrid": "lagfluid.models.fgn.simulator:build_split_step",
+    "fgn_original": "lagfluid.models.fgn.simulator:build_split_step",
 }
 _REGISTERED: dict[str, SimulatorFactory] = {}
+# model=hybrid trains the same three networks as model=fgn (its config holds their options too).
+_BUILTIN_TRAINABLES: dict[str, str] = {
+    "fgn": "lagfluid.models.fgn.trainables:build_trainables",
+    "hybrid": "lagfluid.models.fgn.trainables:build_trainables",
+}
+_REGISTERED_TRAINABLES: dict[str, TrainablesFactory] = {}
 
 
 class UnknownNameError(LagfluidError, KeyError):
@@ -51,8 +62,13 @@ def register_simulator(name: str) -> Callable[[SimulatorFactory], SimulatorFacto
     return wrap
 
 
-def _entry_points() -> dict[str, metadata.EntryPoint]:
-    return {ep.name: ep for ep in metadata.entry_points(group=ENTRY_POINT_GROUP)}
+def _entry_points(group: str = ENTRY_POINT_GROUP) -> dict[str, metadata.EntryPoint]:
+    return {ep.name: ep for ep in metadata.entry_points(group=group)}
+
+
+def _load(target: str) -> Any:
+    module, attr = target.split(":")
+    return getattr(import_module(module), attr)
 
 
 def available_simulators() -> list[str]:
@@ -69,12 +85,60 @@ def get_simulator_factory(name: str) -> SimulatorFactory:
     if name in _REGISTERED:
         return _REGISTERED[name]
     if name in _BUILTIN:
-        module, attr = _BUILTIN[name].split(":")
-        return getattr(import_module(module), attr)
+        return _load(_BUILTIN[name])
     eps = _entry_points()
     if name in eps:
         return eps[name].load()
     raise UnknownNameError(f"unknown model '{name}'; available: {', '.join(available_simulators())}")
+
+
+def register_trainables(model: str) -> Callable[[TrainablesFactory], TrainablesFactory]:
+    """Decorator registering a trainables ``factory`` for ``model`` (overrides built-ins and plugins)."""
+
+    def wrap(factory: TrainablesFactory) -> TrainablesFactory:
+        _REGISTERED_TRAINABLES[model] = factory
+        return factory
+
+    return wrap
+
+
+def trainable_models() -> list[str]:
+    """Sorted names of the models that have trainables (``task=train`` accepts them)."""
+    return sorted(
+        set(_BUILTIN_TRAINABLES) | set(_REGISTERED_TRAINABLES) | set(_entry_points(TRAINABLES_GROUP))
+    )
+
+
+def get_trainables_factory(model: str) -> TrainablesFactory:
+    """Return the trainables factory of ``model``.
+
+    Raises:
+        UnknownNameError: ``model`` has no trainables (message lists the models that have).
+    """
+    if model in _REGISTERED_TRAINABLES:
+        return _REGISTERED_TRAINABLES[model]
+    if model in _BUILTIN_TRAINABLES:
+        return _load(_BUILTIN_TRAINABLES[model])
+    eps = _entry_points(TRAINABLES_GROUP)
+    if model in eps:
+        return eps[model].load()
+    raise UnknownNameError(
+        f"model '{model}' has nothing to train (task=train); models with trainables: "
+        f"{', '.join(trainable_models())}"
+    )
+
+
+def get_trainables(model: str, cfg: Any) -> dict[str, Any]:
+    """``{name: trainable}`` of ``model`` built from ``cfg`` (in the model's own order).
+
+    Raises:
+        UnknownNameError: ``model`` has no trainables.
+        LagfluidError: the factory returned none.
+    """
+    trainables = dict(get_trainables_factory(model)(cfg))
+    if not trainables:
+        raise LagfluidError(f"model '{model}' registers no trainables")
+    return trainables
 
 
 def available_scenes() -> list[str]:

@@ -39,13 +39,15 @@ def available_models() -> list[str]:
 
 
 def check_command_line(argv: Sequence[str]) -> str | None:
-    """Return a one-line error for an unknown ``model=``/``scene=``/``data=``/``task=`` value, else None."""
+    """Return a one-line error for an unknown ``model=``/``scene=``/``data=``/``task=`` value, else None.
+
+    ``stage=`` is checked by ``task=train`` against the model's trainables (from the registry).
+    """
     known = {
         "model": available_models,
         "scene": lambda: _group_names("scene"),
         "data": lambda: _group_names("data"),
         "task": lambda: list(TASKS),
-        "stage": lambda: ["advection", "collision", "pressure", "all"],
     }
     for arg in argv:
         key, sep, value = arg.partition("=")

@@ -32,7 +32,8 @@ def untrained_weights(tmp_path_factory) -> Path:
     """
     import yaml
 
-    from lagfluid.models.checkpoint import build_network, network_payload, save_checkpoint
+    from lagfluid.models.checkpoint import network_payload, save_checkpoint
+    from lagfluid.models.fgn.networks import build_network
 
     out = tmp_path_factory.mktemp("weights")
     options = yaml.safe_load((REPO / "conf" / "model" / "fgn.yaml").read_text())

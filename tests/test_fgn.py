@@ -1,6 +1,7 @@
 """FGN networks, learned stages, checkpoints, the authors' weights and training (seconds)."""
 
 import csv
+import functools
 import json
 from pathlib import Path
 
@@ -14,14 +15,16 @@ from torch_geometric.data import Batch, Data
 from lagfluid.config import build_initial_state, build_simulator
 from lagfluid.errors import ConfigError, LagfluidError
 from lagfluid.generate import generate
-from lagfluid.models import fgn as fgn_mod
-from lagfluid.models.checkpoint import CheckpointError, build_network, load_network, read_checkpoint
-from lagfluid.models.fgn_original import load_original_network
-from lagfluid.physics.learned import compact_nodes
+from lagfluid.models.checkpoint import CheckpointError, read_checkpoint
+from lagfluid.models.fgn import networks as fgn_mod
+from lagfluid.models.fgn.networks import build_network, load_network
+from lagfluid.models.fgn.original import load_original_network
+from lagfluid.models.fgn.stages import compact_nodes
+from lagfluid.models.fgn.trainables import build_trainables
 from lagfluid.run import CONF_DIR
 from lagfluid.simulate import simulate
 from lagfluid.state import ParticleType
-from lagfluid.train import StageTask, learning_rate, train
+from lagfluid.train import learning_rate, train
 
 SHARED = Path(__file__).resolve().parents[2] / "shared"
 
@@ -32,6 +35,11 @@ AUTHORS_WEIGHTS = SHARED / "reference" / "fgn_original" / "checkpoints"
 def _compose(*overrides):
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         return compose(config_name="config", overrides=list(overrides))
+
+
+@functools.cache
+def _trainables():
+    return build_trainables(_compose("task=train", "model=fgn"))
 
 
 def _model_options(kind, model="fgn"):
@@ -82,7 +90,7 @@ def _outputs(nets, data):
     batch = data if isinstance(data, Batch) else Batch.from_data_list([data])
     out = {}
     for kind, net in nets.items():
-        pred, _ = StageTask(kind).predict(net, batch)
+        pred, _ = _trainables()[kind].predict(net, batch)
         out[kind] = pred
     return out
 
@@ -283,7 +291,7 @@ def test_training_lowers_the_loss_and_checkpoints_load_weights_only(trained, kin
     assert len(losses) == 12
     assert np.mean(losses[-3:]) < 0.8 * np.mean(losses[:3]), losses
     ckpt = torch.load(trained / f"{kind}.pt", weights_only=True)  # no pickled code
-    assert ckpt["step"] == 60 and ckpt["kind"] == kind
+    assert ckpt["step"] == 60 and ckpt["kind"] == kind and ckpt["model"] == "fgn"
     net, _ = load_network(trained / f"{kind}.pt", kind)
     assert net.target.std.ne(1).any()  # statistics travel with the weights
 
@@ -410,7 +418,7 @@ def test_exported_weights_drop_the_optimizer_and_still_load(trained, tmp_path):
 
 def test_shipped_weights_fit_the_fgn_config_and_roll_out_by_default(tmp_path):
     """``model=fgn`` works out of the box: the packaged weights exist, match conf/model/fgn.yaml, roll out."""
-    from lagfluid.models.fgn_simulator import SHIPPED_WEIGHTS
+    from lagfluid.models.fgn.simulator import SHIPPED_WEIGHTS
 
     assert (SHIPPED_WEIGHTS / "MODEL_CARD.md").is_file()
     options = yaml.safe_load((CONF_DIR / "model" / "fgn.yaml").read_text())
@@ -420,6 +428,10 @@ def test_shipped_weights_fit_the_fgn_config_and_roll_out_by_default(tmp_path):
         # A config edit that the shipped weights were not trained with must fail here, not at a user's run.
         assert ckpt["options"] == options[kind], kind
         assert "optimizer" not in ckpt and ckpt["step"] > 0 and path.stat().st_size < 1_000_000
+        # written before checkpoints named their model: read as FGN's, refused as another model's
+        assert "model" not in torch.load(path, weights_only=True) and ckpt["model"] == "fgn"
+        with pytest.raises(CheckpointError, match="model 'fgn', expected 'gns'"):
+            read_checkpoint(path, kind, model="gns")
     cfg = _compose("task=simulate", "model=fgn", "scene=dam_small", "steps=20", f"out_dir={tmp_path}")
     assert cfg.model.weights is None
     metrics = simulate(cfg)
@@ -438,3 +450,35 @@ def test_stage_losses_and_an_unknown_loss_is_named():
     assert float(stage_loss(pred, target, "huber", delta=1.0)) == pytest.approx((0.125 + 99.5) / 3)
     with pytest.raises(ConfigError, match="'l1'"):
         stage_loss(pred, target, "l1")
+
+
+def test_the_learned_advection_stage_sees_what_training_sees():
+    """Inference (learned stage in the scheme) and training (trainable on a batch) build the same inputs."""
+    from lagfluid.models.fgn.stages import LearnedAdvection
+    from lagfluid.models.mps_simulator import build_mps
+    from lagfluid.physics.stages import StageTimer, StepContext
+    from lagfluid.scenes import build_scene
+
+    net = _nets()["advection"]
+    state = build_scene("dam", fluid_size=[6, 6, 8], tank_size=[15, 8])
+    nf = state.n_fluid
+    vel = state.vel.clone()
+    vel[:nf] = 0.3 * torch.randn(nf, 3, generator=torch.Generator().manual_seed(7))
+    sim = build_mps(_compose("model=mps"))
+    sim.reset(state)
+    ctx = StepContext(state, sim.settings, sim.constants, sim.neighbors, StageTimer())
+    with torch.no_grad():
+        acc = LearnedAdvection(net)(ctx, state.pos, vel)
+        p = state.params
+        item = Data(
+            pos=state.pos,
+            vel=vel,
+            ptype=state.ptype,
+            gravity=torch.tensor([list(p.gravity)]),
+            viscosity=torch.tensor([p.viscosity]),
+            l0=torch.tensor([p.l0]),
+            y=torch.zeros(nf, 3),
+        )
+        pred, _ = _trainables()["advection"].predict(net, Batch.from_data_list([item]))
+    assert acc.abs().max() > 0
+    torch.testing.assert_close(net.target.inverse(pred), acc, atol=1e-5, rtol=1e-5)

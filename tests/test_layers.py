@@ -87,13 +87,6 @@ LAZY_INSIDE_FUNCTIONS: frozenset[str] = frozenset({"registry"})
 # benchmarks and tests are not installed with the package.
 OUTSIDE: tuple[str, ...] = ("baselines", "benchmarks", "tests")
 
-# (importing module, imported module) pairs in today's tree that break the rule.
-# Removed by issue 13's merge; this set must end empty.
-KNOWN_VIOLATIONS: frozenset[tuple[str, str]] = frozenset(
-    {
-        ("lagfluid.physics.learned", "lagfluid.models.fgn"),
-    }
-)
 # ---------------------------------------------------------------------------------------------------
 
 REPO = Path(__file__).resolve().parents[1]
@@ -244,15 +237,8 @@ def largest_module(root: Path = REPO, packages: tuple[str, ...] = ("lagfluid", "
 
 
 def test_lagfluid_imports_point_one_way():
-    new = [v for v in check(package_sources()) if (v.importer, v.imported) not in KNOWN_VIOLATIONS]
+    new = check(package_sources())
     assert not new, "imports against the layer rule (tests/test_layers.py):\n" + "\n".join(map(str, new))
-
-
-def test_known_violations_still_exist():
-    """The set shrinks as violations are removed: an entry that no longer occurs must leave it."""
-    current = {(v.importer, v.imported) for v in check(package_sources())}
-    gone = sorted(KNOWN_VIOLATIONS - current)
-    assert not gone, f"no longer violations, remove them from KNOWN_VIOLATIONS: {gone}"
 
 
 def test_every_layer_has_its_rule():
@@ -342,7 +328,7 @@ def test_layer_of_prefers_the_most_specific_pattern():
 
 
 def main() -> int:
-    """Print the layers, every violation (known ones marked) and the largest module."""
+    """Print the layers, every violation and the largest module."""
     print("layers, top down (each may import its own and the listed layers):")
     for layer, patterns in LAYERS.items():
         print(f"  {layer:<10} {', '.join(patterns)}")
@@ -350,11 +336,10 @@ def main() -> int:
     violations = check(package_sources())
     print(f"\nviolations: {len(violations)}")
     for v in violations:
-        known = " [known, removed by issue 13]" if (v.importer, v.imported) in KNOWN_VIOLATIONS else ""
-        print(f"  {v}{known}")
+        print(f"  {v}")
     path, lines = largest_module()
     print(f"\nlargest module: {path} ({lines} lines)")
-    return int(any((v.importer, v.imported) not in KNOWN_VIOLATIONS for v in violations))
+    return int(bool(violations))
 
 
 if __name__ == "__main__":

@@ -30,7 +30,7 @@ from benchmarks.tables.report import (
     write_readme,
 )
 from benchmarks.tables.simulators import FGN
-from lagfluid.models.fgn_simulator import SHIPPED_WEIGHTS
+from lagfluid.models.fgn.simulator import SHIPPED_WEIGHTS
 
 
 def run_all(profile: Profile, args: argparse.Namespace) -> dict[str, Any]:

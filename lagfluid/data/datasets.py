@@ -24,8 +24,8 @@ dataset                      one item (N particles: Nf fluid, then boundary; gra
 ============================ ==============================================================================
 
 All items also carry ``dt``, ``l0`` (1,) and ``scene`` (1,) (scene index); scene samples carry
-``gravity``, ``viscosity`` and ``step`` (1,) (solver step). Normalisation statistics are in
-``dataset.metadata["statistics"]`` (train split).
+``gravity``, ``viscosity`` and ``step`` (1,) (solver step). ``dataset.metadata["statistics"]`` describes the
+train split; networks fit their normalisation from training items (their trainable's ``fit_statistics``).
 
 Scenes hold ~85k static boundary particles of which only those near the fluid matter to a graph:
 ``boundary_radius`` (m) keeps the boundary particles within that distance of some fluid particle of the

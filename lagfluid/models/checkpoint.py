@@ -1,17 +1,20 @@
-"""Network checkpoints: one file per network, tensors and plain values only.
+"""Network checkpoints: one file per trained network, tensors and plain values only.
 
 A checkpoint is a ``dict`` saved with :func:`torch.save` that :func:`torch.load` reads back with
 ``weights_only=True`` (no pickled code is ever executed)::
 
     format        "lagfluid-network"
     version       1
-    kind          "advection" | "collision" | "pressure"
+    model         the model the network belongs to ("fgn"); files written before it existed have none and
+                  are FGN's (:data:`LEGACY_MODEL`)
+    kind          the trainable's name within its model ("advection" | "collision" | "pressure" for FGN)
     options       the network's constructor options (so the file rebuilds its own architecture)
-    state_dict    weights and normalisation statistics (the Standardizer buffers)
+    state_dict    weights and normalisation statistics (buffers)
     step          training iterations done
     meta          free-form provenance: data, training profile, time, package version, ...
-    optimizer, scheduler   (training checkpoints only) to resume exactly
+    optimizer, rng   (training checkpoints only) to resume exactly
 
+This module knows no network: the model's trainable (or loader) rebuilds the network from ``options``.
 Writes are atomic: a temporary file in the same directory, then a rename.
 """
 
@@ -25,31 +28,15 @@ import torch
 from torch import nn
 
 from lagfluid.errors import LagfluidError
-from lagfluid.models.fgn import AdvectionNet, CollisionNet, PressureNet
 
 CHECKPOINT_FORMAT = "lagfluid-network"
-KINDS = ("advection", "collision", "pressure")
-_NODE_NET_KEYS = ("width", "layers", "act", "aggregation", "encoder_hidden", "decoder_hidden")
+LEGACY_MODEL = "fgn"
+"""The model of a checkpoint without a ``model`` field (the shipped FGN weights predate the field)."""
+_EXPORTED = ("model", "kind", "options", "state_dict", "step", "meta")
 
 
 class CheckpointError(LagfluidError):
     """A checkpoint that is missing, unreadable, of another format or of another network."""
-
-
-def build_network(kind: str, options: dict[str, Any]) -> nn.Module:
-    """A fresh network of ``kind`` from its options (the ``model.<kind>`` config node as a dict)."""
-    opts = {k: v for k, v in dict(options).items() if v is not None}
-    try:
-        if kind == "collision":
-            return CollisionNet(**opts)
-        net_opts = {k: opts.pop(k) for k in _NODE_NET_KEYS if k in opts}
-        if kind == "advection":
-            return AdvectionNet(**opts, **net_opts)
-        if kind == "pressure":
-            return PressureNet(**opts, **net_opts)
-    except TypeError as err:  # an unknown option name
-        raise CheckpointError(f"invalid options for the {kind} network: {err}") from err
-    raise CheckpointError(f"unknown network kind '{kind}'; available: {', '.join(KINDS)}")
 
 
 def save_checkpoint(path: str | os.PathLike, payload: dict[str, Any]) -> None:
@@ -61,9 +48,12 @@ def save_checkpoint(path: str | os.PathLike, payload: dict[str, Any]) -> None:
     os.replace(tmp, path)
 
 
-def network_payload(net: nn.Module, kind: str, options: dict[str, Any], step: int, meta: dict) -> dict:
-    """The checkpoint fields of a network (no optimizer state)."""
+def network_payload(
+    net: nn.Module, kind: str, options: dict[str, Any], step: int, meta: dict, model: str = LEGACY_MODEL
+) -> dict:
+    """The checkpoint fields of a network of ``model``'s trainable ``kind`` (no optimizer state)."""
     return {
+        "model": model,
         "kind": kind,
         "options": dict(options),
         "state_dict": {k: v.detach().cpu() for k, v in net.state_dict().items()},
@@ -72,11 +62,15 @@ def network_payload(net: nn.Module, kind: str, options: dict[str, Any], step: in
     }
 
 
-def read_checkpoint(path: str | os.PathLike, kind: str | None = None) -> dict[str, Any]:
-    """Load a checkpoint dict (``weights_only=True``), checking its format and, if given, its kind.
+def read_checkpoint(
+    path: str | os.PathLike, kind: str | None = None, model: str | None = None
+) -> dict[str, Any]:
+    """Load a checkpoint dict (``weights_only=True``), checking its format and, if given, model and kind.
+
+    The returned dict always has ``model`` (:data:`LEGACY_MODEL` when the file has none).
 
     Raises:
-        CheckpointError: missing file, unreadable or foreign content, or another kind of network.
+        CheckpointError: missing file, unreadable or foreign content, or another model or kind of network.
     """
     path = Path(path)
     if not path.is_file():
@@ -89,37 +83,30 @@ def read_checkpoint(path: str | os.PathLike, kind: str | None = None) -> dict[st
         raise CheckpointError(
             f"{path} is not a lagfluid network checkpoint (format {CHECKPOINT_FORMAT!r} v1)"
         )
+    ckpt.setdefault("model", LEGACY_MODEL)
+    if model is not None and ckpt["model"] != model:
+        raise CheckpointError(f"{path} holds a network of model {ckpt['model']!r}, expected {model!r}")
     if kind is not None and ckpt.get("kind") != kind:
         raise CheckpointError(f"{path} holds a {ckpt.get('kind')!r} network, expected {kind!r}")
     return ckpt
 
 
-def load_network(path: str | os.PathLike, kind: str | None = None) -> tuple[nn.Module, dict[str, Any]]:
-    """Rebuild the network saved in ``path`` with its own options and weights.
-
-    Returns:
-        The network (CPU, eval mode) and the checkpoint dict.
-    """
-    ckpt = read_checkpoint(path, kind)
-    net = build_network(ckpt["kind"], ckpt["options"])
-    try:
-        net.load_state_dict(ckpt["state_dict"])
-    except RuntimeError as err:
-        raise CheckpointError(f"{path}: weights do not fit its own options: {err}") from err
-    return net.eval(), ckpt
-
-
 def export_weights(run_dir: str | os.PathLike, dest_dir: str | os.PathLike) -> list[Path]:
-    """Copy the three networks of a training run without optimizer and RNG state (shipping size).
+    """Copy every network checkpoint of a training run without optimizer and RNG state (shipping size).
 
     ``python -m lagfluid.models.checkpoint RUN_DIR DEST_DIR`` does the same from the shell.
+
+    Raises:
+        CheckpointError: ``run_dir`` holds no checkpoint, or one that is unreadable.
     """
+    paths = sorted(Path(run_dir).glob("*.pt"))
+    if not paths:
+        raise CheckpointError(f"no checkpoints (*.pt) in {run_dir}")
     written = []
-    for kind in KINDS:
-        ckpt = read_checkpoint(Path(run_dir) / f"{kind}.pt", kind)
-        keep = {k: ckpt[k] for k in ("kind", "options", "state_dict", "step", "meta")}
-        save_checkpoint(Path(dest_dir) / f"{kind}.pt", keep)
-        written.append(Path(dest_dir) / f"{kind}.pt")
+    for path in paths:
+        ckpt = read_checkpoint(path)
+        save_checkpoint(Path(dest_dir) / path.name, {k: ckpt[k] for k in _EXPORTED})
+        written.append(Path(dest_dir) / path.name)
     return written
 
 

@@ -6,7 +6,7 @@ speed for accuracy stage by stage (e.g. exact advection + learned pressure).
 
 Weights: ``model.weights`` is a directory holding ``advection.pt``, ``collision.pt`` and ``pressure.pt``
 (:mod:`lagfluid.models.checkpoint`, as ``task=train`` writes them) or, with ``model.format=original``, the
-authors' arrays (:mod:`lagfluid.models.fgn_original`). ``null`` means the weights shipped in the package
+authors' arrays (:mod:`lagfluid.models.fgn.original`). ``null`` means the weights shipped in the package
 (``lagfluid/weights/fgn``, see its MODEL_CARD.md).
 """
 
@@ -21,16 +21,16 @@ import torch
 from omegaconf import OmegaConf
 
 from lagfluid.errors import ConfigError
-from lagfluid.models.checkpoint import KINDS, CheckpointError, load_network
-from lagfluid.models.fgn import parameter_count
-from lagfluid.models.fgn_original import load_original_network
-from lagfluid.physics.learned import LearnedAdvection, LearnedCollision, LearnedPressure
+from lagfluid.models.checkpoint import CheckpointError
+from lagfluid.models.fgn.networks import KINDS, load_network, parameter_count
+from lagfluid.models.fgn.original import load_original_network
+from lagfluid.models.fgn.stages import LearnedAdvection, LearnedCollision, LearnedPressure
 from lagfluid.physics.mps import CollisionRule, ExactAdvection, ExactPressure
 from lagfluid.physics.stages import SolverSettings, SplitStepSimulator
 
 log = logging.getLogger(__name__)
 
-SHIPPED_WEIGHTS = Path(__file__).resolve().parent.parent / "weights" / "fgn"
+SHIPPED_WEIGHTS = Path(__file__).resolve().parents[2] / "weights" / "fgn"
 CHOICES = ("learned", "exact", "none")
 _EXACT = {"advection": ExactAdvection, "collision": CollisionRule, "pressure": ExactPressure}
 _LEARNED = {"advection": LearnedAdvection, "collision": LearnedCollision, "pressure": LearnedPressure}
@@ -42,6 +42,11 @@ class LearnedSplitStep(SplitStepSimulator):
     def __init__(self, *args: Any, networks: dict[str, Any], **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         self.networks = networks
+
+    @property
+    def parameters(self) -> int:
+        """Trainable parameters of the learned stages (0 when every stage is exact)."""
+        return sum(int(n["parameters"]) for n in self.networks.values())
 
     def attributes(self) -> dict[str, Any]:
         """MPS constants plus ``networks`` (JSON: per learned stage its file, format, step, parameters)."""

@@ -1,10 +1,11 @@
-"""Learned stages: FGN's networks behind the stage protocols of :mod:`lagfluid.physics.stages`.
+"""FGN's learned stages: its networks behind the stage protocols of :mod:`lagfluid.physics.stages`.
 
 Each stage asks the step's :class:`~lagfluid.physics.stages.StepContext` for its radius graph (so graphs are
 shared with the exact stages and never searched twice at one set of positions), keeps only the particles
 that graph touches (a scene's ~80k static boundary particles mostly never enter), runs its network there
 and returns what the exact stage would return. Only the networks differ between ``model=mps``, ``fgn`` and
-``hybrid``; the update scheme around them is the same code.
+``hybrid``; the update scheme around them is the same code. The networks' inputs come from
+:mod:`lagfluid.models.fgn.inputs`, the functions training uses too.
 """
 
 from __future__ import annotations
@@ -12,11 +13,11 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from lagfluid.models.fgn import AdvectionNet, CollisionNet, PressureNet
-from lagfluid.neighbors import kernel_adjacency
+from lagfluid.models.fgn.inputs import advection_inputs, collision_inputs, pressure_inputs
+from lagfluid.models.fgn.networks import AdvectionNet, CollisionNet, PressureNet
 from lagfluid.physics import operators as ops
 from lagfluid.physics.stages import SolverSettings, StepContext
-from lagfluid.state import ParticleType, SceneParams
+from lagfluid.state import SceneParams
 
 
 def _net_dtype(net: torch.nn.Module) -> torch.dtype:
@@ -47,7 +48,7 @@ def compact_nodes(edge_index: Tensor, first: int, num_nodes: int) -> tuple[Tenso
 
 
 class LearnedAdvection:
-    """Advection by :class:`~lagfluid.models.fgn.AdvectionNet` on the fluid and its neighbours."""
+    """Advection by :class:`~lagfluid.models.fgn.networks.AdvectionNet` on the fluid and its neighbours."""
 
     def __init__(self, net: AdvectionNet) -> None:
         self.net = net.eval()
@@ -62,16 +63,23 @@ class LearnedAdvection:
         g = ctx.graph(pos, self.net.radius, fluid_targets_only=True)
         with ctx.timer("advection", pos.device):
             nodes, edge_index = compact_nodes(g.edge_index, nf, pos.shape[0])
-            dtype, m = _net_dtype(self.net), nodes.numel()
-            adj = kernel_adjacency(edge_index, ops.kernel(g.dist, ctx.radius(self.net.radius)).to(dtype), m)
-            gravity = torch.tensor(params.gravity, dtype=dtype, device=pos.device).expand(m, 3)
-            viscosity = torch.full((m,), params.viscosity, dtype=dtype, device=pos.device)
-            acc = self.net.predict(vel.index_select(0, nodes).to(dtype), nodes < nf, gravity, viscosity, adj)
+            dtype = _net_dtype(self.net)
+            inputs = advection_inputs(
+                vel.index_select(0, nodes),
+                nodes < nf,
+                torch.tensor([params.gravity], dtype=dtype, device=pos.device),
+                torch.tensor([params.viscosity], dtype=dtype, device=pos.device),
+                edge_index,
+                g.dist,
+                ctx.radius(self.net.radius),
+                dtype,
+            )
+            acc = self.net.predict(*inputs)
         return acc[:nf].to(pos.dtype)
 
 
 class LearnedCollision:
-    """Collision correction by :class:`~lagfluid.models.fgn.CollisionNet` (pairs within its radius)."""
+    """Collision correction by :class:`~lagfluid.models.fgn.networks.CollisionNet` (pairs in its radius)."""
 
     def __init__(self, net: CollisionNet) -> None:
         self.net = net.eval()
@@ -91,15 +99,15 @@ class LearnedCollision:
             if g.edge_index.shape[1] == 0:  # nothing within the radius: no network call at all
                 return vel[:nf].clone()
             nodes, edge_index = compact_nodes(g.edge_index, nf, pos.shape[0])
-            dtype = _net_dtype(self.net)
-            dv = self.net.predict(
-                vel.index_select(0, nodes).to(dtype), g.rel.to(dtype), g.dist.to(dtype), edge_index
+            inputs = collision_inputs(
+                vel.index_select(0, nodes), g.rel, g.dist, edge_index, _net_dtype(self.net)
             )
+            dv = self.net.predict(*inputs)
         return vel[:nf] + dv[:nf].to(vel.dtype)
 
 
 class LearnedPressure:
-    """Pressure by :class:`~lagfluid.models.fgn.PressureNet` on the non-free-surface particles.
+    """Pressure by :class:`~lagfluid.models.fgn.networks.PressureNet` on the non-free-surface particles.
 
     The nodes are the PPE's unknowns: fluid and wall particles with ``n >= beta n0`` (number density at
     ``re_density``); free-surface and dummy particles have ``p = 0``, as in the exact stage.
@@ -122,8 +130,8 @@ class LearnedPressure:
             n = ops.number_density(
                 pos, g_n.edge_index, ctx.radius(s.re_density), num_nodes=n_all, geometry=g_n.geometry
             )
-            surface = n < s.surface_beta * c.n0
-            solved = (ptype != ParticleType.DUMMY) & ~surface
+            surface = ops.free_surface(n, c.n0, s.surface_beta)
+            solved = ops.ppe_unknowns(ptype, surface)
             src, dst = g_p.edge_index
             keep = solved.index_select(0, src) & solved.index_select(0, dst)
             sub = g_p.select(keep)
@@ -131,14 +139,18 @@ class LearnedPressure:
             local = torch.full((n_all,), -1, dtype=torch.long, device=pos.device)
             local[idx] = torch.arange(idx.numel(), device=pos.device)
             edge_index = local.index_select(0, sub.edge_index.flatten()).view(2, -1)
-            dtype, m = _net_dtype(self.net), idx.numel()
-            adj = kernel_adjacency(edge_index, ops.kernel(sub.dist, ctx.radius(self.net.radius)).to(dtype), m)
-            p = self.net.predict(
-                vel.index_select(0, idx).to(dtype),
-                (n.index_select(0, idx) / c.n0).to(dtype),
+            m = idx.numel()
+            inputs = pressure_inputs(
+                vel.index_select(0, idx),
+                n.index_select(0, idx),
+                c.n0,
                 idx < nf,
-                adj,
+                edge_index,
+                sub.dist,
+                ctx.radius(self.net.radius),
+                _net_dtype(self.net),
             )
+            p = self.net.predict(*inputs)
             pressure = torch.zeros(n_all, dtype=pos.dtype, device=pos.device)
             pressure[idx] = p.to(pos.dtype)
         ctx.record(number_density=n, free_surface=surface, ppe_solved=solved)

@@ -14,8 +14,8 @@ translation invariant; they are permutation invariant and batch block-diagonally
 sum is a sparse product over a radius graph. Inputs and targets are standardised with statistics held as
 buffers (:class:`Standardizer`), so a checkpoint's ``state_dict`` carries them.
 
-The layout mirrors the authors' released code (``../shared/reference/FGN_ORIGINAL.md``) so that their
-weights load by name (see :mod:`lagfluid.models.fgn_original`); what differs is configuration:
+The layout mirrors the authors' released code so that their weights load by name (see
+:mod:`lagfluid.models.fgn.original`); what differs is configuration:
 
 ============================ ============================ =====================================
 choice                        authors' release             ``conf/model/fgn.yaml`` (ours)
@@ -28,7 +28,7 @@ aggregation                   kernel-weighted sum          kernel-weighted sum (
 
 from __future__ import annotations
 
-import math
+import os
 from collections.abc import Sequence
 from typing import Any
 
@@ -38,9 +38,11 @@ from torch_geometric.nn import MessagePassing
 from torch_geometric.utils import scatter
 
 from lagfluid.errors import ConfigError
+from lagfluid.models.checkpoint import CheckpointError, read_checkpoint
 
 __all__ = [
     "ADVECTION_FEATURES",
+    "KINDS",
     "PRESSURE_FEATURES",
     "AdvectionNet",
     "CollisionNet",
@@ -48,8 +50,15 @@ __all__ = [
     "NodeNet",
     "PressureNet",
     "Standardizer",
+    "build_network",
+    "load_network",
     "make_mlp",
+    "parameter_count",
 ]
+
+KINDS = ("advection", "collision", "pressure")
+"""FGN's networks, one per learned stage (each a trainable of ``model=fgn``)."""
+_NODE_NET_KEYS = ("width", "layers", "act", "aggregation", "encoder_hidden", "decoder_hidden")
 
 ACTIVATIONS: dict[str, type[nn.Module]] = {
     "identity": nn.Identity,
@@ -457,9 +466,36 @@ def parameter_count(module: nn.Module) -> int:
     return sum(p.numel() for p in module.parameters() if p.requires_grad)
 
 
-def log_uniform_sample(
-    low: float, high: float, size: int, generator: torch.Generator | None = None
-) -> Tensor:
-    """``size`` values log-uniform in ``[low, high]`` (float64)."""
-    u = torch.rand(size, generator=generator, dtype=torch.float64)
-    return torch.exp(math.log(low) + u * (math.log(high) - math.log(low)))
+def build_network(kind: str, options: dict[str, Any]) -> nn.Module:
+    """A fresh network of ``kind`` from its options (the ``model.<kind>`` config node as a dict)."""
+    opts = {k: v for k, v in dict(options).items() if v is not None}
+    try:
+        if kind == "collision":
+            return CollisionNet(**opts)
+        net_opts = {k: opts.pop(k) for k in _NODE_NET_KEYS if k in opts}
+        if kind == "advection":
+            return AdvectionNet(**opts, **net_opts)
+        if kind == "pressure":
+            return PressureNet(**opts, **net_opts)
+    except TypeError as err:  # an unknown option name
+        raise CheckpointError(f"invalid options for the {kind} network: {err}") from err
+    raise CheckpointError(f"unknown network kind '{kind}'; available: {', '.join(KINDS)}")
+
+
+def load_network(path: str | os.PathLike, kind: str | None = None) -> tuple[nn.Module, dict[str, Any]]:
+    """Rebuild the FGN network saved in ``path`` with its own options and weights.
+
+    Returns:
+        The network (CPU, eval mode) and the checkpoint dict.
+
+    Raises:
+        CheckpointError: see :func:`lagfluid.models.checkpoint.read_checkpoint`; weights that do not fit
+            the checkpoint's own options.
+    """
+    ckpt = read_checkpoint(path, kind, model="fgn")
+    net = build_network(ckpt["kind"], ckpt["options"])
+    try:
+        net.load_state_dict(ckpt["state_dict"])
+    except RuntimeError as err:
+        raise CheckpointError(f"{path}: weights do not fit its own options: {err}") from err
+    return net.eval(), ckpt

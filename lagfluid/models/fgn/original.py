@@ -1,12 +1,13 @@
 """Load the FGN authors' published weights (``fgn_original/checkpoints``) into our modules.
 
 Their files are plain arrays named as in their ``state_dict`` (``adv_net.npz``, ``col_net.npz``,
-``prs_net.npz``) plus the mean and variance of each standard scaler (``*.scalers.json``). Our modules keep
-their layout (see :mod:`lagfluid.models.fgn`), so loading is a rename table, checked strictly: a missing,
-extra or mis-shaped array is an error naming it. Their architecture is ``conf/model/fgn_original.yaml``
-(identity activations in the node networks: their ``nn.LeakyReLU(True)`` sets ``negative_slope=1``).
+``prs_net.npz``) plus the mean and variance of each standard scaler (``*.scalers.json``). Our modules
+keep their layout (see :mod:`lagfluid.models.fgn.networks`), so loading is a rename table, checked
+strictly: a missing, extra or mis-shaped array is an error naming it. Their architecture is
+``conf/model/fgn_original.yaml`` (identity activations in the node networks: their ``nn.LeakyReLU(True)``
+sets ``negative_slope=1``).
 
-The package never needs ``../shared`` at run time: the directory is a config value (``model.weights``).
+The directory is a config value (``model.weights``); the package ships none of their files.
 """
 
 from __future__ import annotations
@@ -21,7 +22,8 @@ import numpy as np
 import torch
 from torch import nn
 
-from lagfluid.models.checkpoint import CheckpointError, build_network
+from lagfluid.models.checkpoint import CheckpointError
+from lagfluid.models.fgn.networks import build_network
 
 FILES = {"advection": "adv_net", "collision": "col_net", "pressure": "prs_net"}
 # Parts of their collision layer that their forward pass computes but never uses (the node update).

@@ -1,0 +1,101 @@
+"""The generic trainer and the trainables registry: nothing in lagfluid/train.py names a model (seconds)."""
+
+import csv
+
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+from torch import nn
+from torch_geometric.data import Data
+
+from lagfluid import registry
+from lagfluid.errors import ConfigError
+from lagfluid.generate import generate
+from lagfluid.models.checkpoint import read_checkpoint
+from lagfluid.models.trainable import Trainable
+from lagfluid.registry import UnknownNameError, get_trainables, trainable_models
+from lagfluid.run import CONF_DIR
+from lagfluid.train import train
+
+
+def _compose(*overrides):
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        return compose(config_name="config", overrides=list(overrides))
+
+
+class LinearFit:
+    """A toy trainable: a linear map fitted to y = x @ W, no FGN anywhere."""
+
+    model = "toy"
+
+    def __init__(self, name: str) -> None:
+        self.name, self.options = name, {"width": 3}
+
+    def datasets(self, data_dir):
+        g = torch.Generator().manual_seed(0)
+        w = torch.tensor([[1.0, -2.0, 0.5]]).T
+        items = []
+        for _ in range(8):
+            x = torch.randn(5, 3, generator=g)
+            items.append(Data(x=x, y=x @ w, num_nodes=5))
+        return items[:6], items[6:]
+
+    def build_network(self):
+        return nn.Linear(self.options["width"], 1)
+
+    def fit_statistics(self, net, items):
+        return {"items": len(items)}
+
+    def predict(self, net, batch):
+        return net(batch.x), batch.y
+
+    def identity(self):
+        return {}
+
+
+@pytest.fixture(scope="module")
+def tiny_data(tmp_path_factory):
+    out = tmp_path_factory.mktemp("tiny_train")
+    generate(_compose("task=generate", "scene=random", "data=tiny", f"data.out_dir={out}", "progress=false"))
+    return out
+
+
+def test_fgn_trainables_come_from_the_registry():
+    assert {"fgn", "hybrid"} <= set(trainable_models())
+    trainables = get_trainables("fgn", _compose("task=train", "model=fgn"))
+    assert list(trainables) == ["advection", "collision", "pressure"]
+    for name, t in trainables.items():
+        assert isinstance(t, Trainable) and t.name == name and t.model == "fgn"
+
+
+def test_a_model_without_trainables_is_a_clear_error(tiny_data, tmp_path):
+    with pytest.raises(UnknownNameError, match=r"model 'mps' has nothing to train.*fgn, hybrid"):
+        train(_compose("task=train", "model=mps", f"data.out_dir={tiny_data}", f"out_dir={tmp_path}"))
+
+
+def test_the_generic_loop_trains_any_registered_trainable(tiny_data, tmp_path, monkeypatch):
+    monkeypatch.setitem(registry._REGISTERED_TRAINABLES, "fgn", lambda cfg: {"line": LinearFit("line")})
+    cfg = _compose(
+        "task=train",
+        "model=fgn",
+        "data=tiny",
+        f"data.out_dir={tiny_data}",
+        f"out_dir={tmp_path}",
+        "progress=false",
+        "+train.iterations.line=60",
+        "+train.batch_size.line=2",
+        "train.log_every=10",
+        "train.valid_every=30",
+        "train.checkpoint_every=30",
+        "train.lr_start=0.1",
+        "train.lr_end=0.05",
+    )
+    (summary,) = train(cfg)
+    assert summary["kind"] == "line" and summary["step"] == 60
+    ckpt = read_checkpoint(tmp_path / "line.pt", "line", model="toy")
+    assert ckpt["meta"]["stats"] == {"items": 6} and ckpt["options"] == {"width": 3}
+    with (tmp_path / "line_loss.csv").open() as f:
+        losses = [float(r["train_loss"]) for r in csv.DictReader(f)]
+    assert len(losses) == 6 and losses[-1] < 0.2 * losses[0], losses
+    with pytest.raises(ConfigError, match=r"unknown stage 'advection' of model fgn; available: line, all"):
+        train(_compose("task=train", "model=fgn", "stage=advection", f"data.out_dir={tiny_data}"))
