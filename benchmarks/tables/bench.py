@@ -31,7 +31,7 @@ from benchmarks.tables.simulators import (
     all_simulators,
     simulator,
 )
-from lagfluid.config import build_initial_state, build_simulator
+from lagfluid.config import at_simulator_time_step, build_initial_state, build_simulator
 from lagfluid.errors import ConfigError
 from lagfluid.evaluate import evaluate
 from lagfluid.rollout import Guard, rollout
@@ -67,8 +67,9 @@ class Run:
     @property
     def command(self) -> str:
         """The ``python -m lagfluid.run`` line that reruns this row (the script's own paths included)."""
-        head = [f"experiment={self.experiment}"] if self.experiment else []
-        return " ".join(["python -m lagfluid.run", *head, *self.overrides])
+        head = [f"experiment={self.experiment}"] if self.experiment else [f"model={self.sim.model}"]
+        overrides = [o for o in self.overrides if o not in head]
+        return " ".join(["python -m lagfluid.run", *head, *overrides])
 
     @property
     def ok(self) -> bool:
@@ -98,6 +99,7 @@ class Bench:
         self.runs_dir = Path(args.runs_dir) / profile.name
         self.reference_dir = Path(args.runs_dir) / "reference"
         self.done: dict[str, Run] = {}
+        self._own_dt: dict[str, float | None] = {}
         self.scene_cache: dict[str, DictConfig] = {}
 
     # -------------------------------------------------------------- helpers
@@ -206,8 +208,8 @@ class Bench:
             cfg = compose_config(head + run.overrides)
             torch.set_num_threads(self.threads)
             torch.manual_seed(int(cfg.seed))
-            state = build_initial_state(cfg)
             sim = build_simulator(cfg)
+            state = at_simulator_time_step(build_initial_state(cfg), sim, cfg)
             guard = Guard(float(cfg.solver.guard.max_courant), int(cfg.solver.guard.check_every))
             state, _ = rollout(sim, state, p.timing_warmup, guard=guard)
             state, record = rollout(sim, state, int(cfg.steps), guard=guard, reset=False)
@@ -244,11 +246,35 @@ class Bench:
         runs = []
         for sim in all_simulators(p.simulators):
             figures = p.figures and case == "dam" and sim.key == FGN
+            own = self.own_dt(sim)
+            if own is not None:  # the same duration and frames in its own steps, against the same MPS
+                scene, duration, extra = (
+                    (p.dam_scene, p.dam_duration, ())
+                    if case == "dam"
+                    else ("waterfall", p.waterfall_duration, p.waterfall)
+                )
+                sim_ov = self.dam_overrides(scene, duration, dt=own, extra=extra)
+            else:
+                sim_ov = list(ov)
             run = Run(
-                f"table3/{case}/{sim.key}", sim.label, sim, row_file(f"table3_{case}_{sim.key}"), list(ov)
+                f"table3/{case}/{sim.key}", sim.label, sim, row_file(f"table3_{case}_{sim.key}"), sim_ov
             )
             runs.append(self.evaluate(run, figures=figures))
         return runs
+
+    def own_dt(self, sim: Simulator) -> float | None:
+        """The simulator's own time step (``Simulator.dt``; None: it steps by the scene's), asked once."""
+        if sim.key not in self._own_dt:
+            row = row_file(f"table3_dam_{sim.key}")
+            head = [f"experiment={row}"] if row else [f"model={sim.model}"]
+            try:
+                self._own_dt[sim.key] = build_simulator(
+                    compose_config(head + sim.model_overrides(self.weights))
+                ).dt
+            except Exception as err:  # the row itself reports what is wrong with the model
+                log.warning("cannot build %s to ask its time step: %s", sim.key, err)
+                self._own_dt[sim.key] = None
+        return self._own_dt[sim.key]
 
     def table2_runs(self) -> list[Run]:
         """Table 2 rows: every simulator timed on the timing scene."""
