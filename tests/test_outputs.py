@@ -1,0 +1,100 @@
+"""Outputs are never lost: sweeps write one folder per job, reruns replace outputs only when they end."""
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import h5py
+import pytest
+from hydra import compose, initialize_config_dir
+
+from lagfluid.config import job_folder
+from lagfluid.errors import LagfluidError
+from lagfluid.outputs import part_path
+from lagfluid.run import CONF_DIR
+from lagfluid.simulate import simulate
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _compose(*overrides):
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        return compose(config_name="config", overrides=list(overrides))
+
+
+def _dt_of(folder: Path) -> float:
+    with h5py.File(folder / "rollout.h5", "r") as f:
+        dt_file = float(f["00000"].attrs["dt"])
+    assert json.loads((folder / "metrics.json").read_text())["dt"] == dt_file  # the two files of one job
+    return dt_file
+
+
+def test_a_two_job_sweep_writes_one_folder_per_job(tmp_path):
+    out = tmp_path / "out"
+    args = ["-m", "model=mps", "scene=dam_small", "steps=6", "dt=0.001,0.002", f"out_dir={out}"]
+    done = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "lagfluid.run",
+            *args,
+            "threads=1",
+            "progress=false",
+            f"hydra.sweep.dir={tmp_path}/s",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env={**os.environ, "OMP_NUM_THREADS": "1"},
+        cwd=REPO,
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    jobs = sorted(p.name for p in out.iterdir())
+    assert jobs == [
+        "0_dt=0.001,model=mps,scene=dam_small,steps=6",
+        "1_dt=0.002,model=mps,scene=dam_small,steps=6",
+    ]
+    assert [_dt_of(out / job) for job in jobs] == [0.001, 0.002]
+    assert not list(out.glob("*/*.part.*"))
+
+
+def test_job_folders_are_file_names():
+    assert job_folder(3, "") == "3"
+    assert job_folder(0, "scene.path=/data/a b.npz,dt=0.001") == "0_scene.path=_data_a_b.npz,dt=0.001"
+    assert len(job_folder(12, "x=" + "9" * 500)) <= 3 + 120
+
+
+@pytest.mark.parametrize(
+    ("override", "message"),
+    [
+        ("dtype=float16", "unknown dtype 'float16'"),
+        ("device=cuda:7", "device=cuda:7"),
+        ("model.weights=/nonexistent", "not found"),
+    ],
+)
+def test_a_rerun_that_fails_before_its_first_step_keeps_the_last_outputs(tmp_path, override, message):
+    if override.startswith("device") and __import__("torch").cuda.is_available():
+        pytest.skip("a CUDA machine has a device; the check is for one without")
+    first = simulate(_compose("experiment=debug", "steps=4", f"out_dir={tmp_path}"))
+    before = {p.name: p.read_bytes() for p in tmp_path.iterdir() if p.is_file()}
+    assert {"rollout.h5", "metrics.json", "preview.png"} <= set(before)
+    model = ["model=fgn"] if override.startswith("model.") else []
+    with pytest.raises(LagfluidError, match=message):
+        simulate(_compose("experiment=debug", *model, "steps=4", override, f"out_dir={tmp_path}"))
+    after = {p.name: p.read_bytes() for p in tmp_path.iterdir() if p.is_file()}
+    assert after == before and first["complete"]
+
+
+def test_an_incomplete_rerun_keeps_the_last_complete_run_in_previous(tmp_path):
+    simulate(_compose("experiment=debug", "steps=4", f"out_dir={tmp_path}"))
+    good = (tmp_path / "rollout.h5").read_bytes()
+    with pytest.raises(LagfluidError, match="Courant"):  # 50 ms steps: the guard stops it
+        simulate(_compose("experiment=debug", "dt=0.05", "steps=10", f"out_dir={tmp_path}"))
+    assert (tmp_path / "previous" / "rollout.h5").read_bytes() == good
+    saved = json.loads((tmp_path / "metrics.json").read_text())
+    assert saved["complete"] is False and saved["dt"] == 0.05  # the new run's files, all of them
+    with h5py.File(tmp_path / "rollout.h5", "r") as f:
+        assert float(f["00000"].attrs["dt"]) == 0.05
+    assert not part_path(tmp_path / "rollout.h5").exists()
