@@ -136,14 +136,12 @@ class SolverSettings:
         """Weight of the PPE source's density term ``(n - n0)/(dt^2 n0)`` at time step ``dt`` (s).
 
         ``source_density_reference_dt`` null (the authors): ``source_density`` whatever ``dt``, i.e. the
-        solve removes that fraction of the density error *per step*. The pressure that does it scales as
-        ``1/dt^2`` while the particle-scale density noise does not shrink with ``dt``, so the kicks per
-        unit time grow as ``dt`` falls: a 10x10x20 resting column reaches a mean |v| of 106 mm/s at 2 s
-        with dt = 1 ms against 30 mm/s at 2 ms (corrected gradient, ``re_laplacian`` 2.1; 159 against 103
-        with the authors' scheme). Set to a time step ``dt_ref`` (s), the weight is
-        ``min(1, source_density (dt/dt_ref)^2)``: the density error then relaxes on the fixed physical
-        time ``dt_ref / sqrt(source_density)`` (4.5 ms for 0.2 at 2 ms; 14 ms for ``solver=mps_corrected``'s
-        0.02), and the column moves as at 2 ms (26 mm/s); the cap: one step cannot correct more than all.
+        solve removes that fraction of the density error *per step*; its pressure scales as ``1/dt^2`` while
+        the particle-scale density noise does not shrink, so a smaller ``dt`` makes a resting fluid noisier
+        (see benchmarks/results/resting_variants.md, the dt = 1 ms table). Set to a time step ``dt_ref``
+        (s), the weight is ``min(1, source_density (dt/dt_ref)^2)``: the density error relaxes on the fixed
+        physical time ``dt_ref / sqrt(source_density)`` whatever ``dt``; the cap: one step cannot correct
+        more than all of it.
         """
         if self.source_density_reference_dt is None:
             return self.source_density
