@@ -21,7 +21,7 @@ def plot_errors(path: Path, frames: dict[str, Any], title: str) -> Path:
     import matplotlib.pyplot as plt
 
     t = np.asarray(frames["time_s"])
-    # Fixed margins rather than a layout engine: constrained layout measured ~2 s per figure here.
+    # Fixed margins rather than a layout engine: the constrained layout dominated the time per figure.
     fig, axes = plt.subplots(2, 3, figsize=(13, 6.5))
     fig.subplots_adjust(left=0.06, right=0.99, bottom=0.08, top=0.93, wspace=0.28, hspace=0.3)
     model_style, ref_style = {"color": "C0", "label": "model"}, {"color": "k", "ls": "--", "label": "MPS"}
