@@ -18,10 +18,10 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 import lagfluid
-from lagfluid.errors import ConfigError, RolloutError
+from lagfluid.errors import ConfigError, RolloutError, SceneError
 from lagfluid.models.simulator import Simulator, check_simulator
 from lagfluid.registry import check_scene_name, get_simulator_factory
-from lagfluid.scenes import build_scene
+from lagfluid.scenes import build_scene, trajectory_history, trajectory_params
 from lagfluid.state import ParticleState, SceneParams
 
 log = logging.getLogger(__name__)
@@ -45,9 +45,21 @@ def git_commit() -> str:
     return out.stdout.strip() if out.returncode == 0 else ""
 
 
+def _scene_builder(cfg: DictConfig) -> str:
+    return str(cfg.scene.get("builder") or cfg.scene.name)
+
+
 def scene_params(cfg: DictConfig) -> SceneParams:
-    """Physical parameters from ``cfg.scene.params`` with the top-level ``dt`` override applied."""
+    """Physical parameters from ``cfg.scene.params`` with the top-level ``dt`` override applied.
+
+    For ``scene=trajectory`` a null parameter (the config's default) is the trajectory file's value: the
+    command-line ``dt=`` wins over ``scene.params.X``, which wins over the file.
+    """
     raw = OmegaConf.to_container(cfg.scene.get("params", {}) or {}, resolve=True)
+    if _scene_builder(cfg) == "trajectory":
+        if OmegaConf.is_missing(cfg.scene, "path") or cfg.scene.path is None:
+            raise SceneError("scene=trajectory needs scene.path=<a lagfluid trajectory file (.h5)>")
+        raw = {**trajectory_params(cfg.scene.path), **{k: v for k, v in raw.items() if v is not None}}
     if "gravity" in raw:
         raw["gravity"] = tuple(float(g) for g in raw["gravity"])
     return SceneParams(**raw).with_overrides(dt=cfg.dt)
@@ -111,7 +123,7 @@ def build_initial_state(cfg: DictConfig) -> ParticleState:
     ``cfg.scene.builder`` names the scene builder when a config reuses another scene's builder with other
     options (``dam_small`` is a ``dam``); otherwise the builder is ``cfg.scene.name``.
     """
-    builder = cfg.scene.get("builder") or cfg.scene.name
+    builder = _scene_builder(cfg)
     check_scene_name(builder)
     dtype = run_dtype(cfg)
     scene = OmegaConf.to_container(cfg.scene, resolve=True)
@@ -152,6 +164,39 @@ def at_simulator_time_step(state: ParticleState, simulator: Simulator, cfg: Dict
         bounds=state.bounds,
         check=False,
     )
+
+
+def initial_history(cfg: DictConfig, simulator: Simulator) -> list[ParticleState]:
+    """The earlier states ``simulator.reset`` gets: frames before ``scene.frame`` for ``scene=trajectory``.
+
+    Args:
+        cfg: the run's config.
+        simulator: the run's simulator; it gets ``min(history_length, t)`` frames ``t-H .. t-1`` (oldest
+            first) of the trajectory file when the scene starts at its frame ``t``.
+
+    Returns:
+        the history (on ``cfg.device`` in ``cfg.dtype``, at the simulator's time step); empty for a scene
+        built from scratch or a simulator without history.
+
+    Raises:
+        ConfigError: the file's frames are not spaced by the simulator's time step (its own ``dt``, or the
+            scene's); the message names both spacings.
+        SceneError: those frames are not uniformly spaced, or the file or frame is bad.
+    """
+    if _scene_builder(cfg) != "trajectory" or simulator.history_length == 0:
+        return []
+    params = scene_params(cfg)
+    dt = float(simulator.dt) if simulator.dt is not None else params.dt
+    history = trajectory_history(
+        cfg.scene.path,
+        int(cfg.scene.frame),
+        simulator.history_length,
+        dt,
+        params.with_overrides(dt=dt),
+        run_dtype(cfg),
+    )
+    device = run_device(cfg)
+    return [s.to(device=device) for s in history]
 
 
 def job_folder(num: int, override_dirname: str) -> str:

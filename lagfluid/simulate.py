@@ -29,6 +29,7 @@ from lagfluid.config import (
     at_simulator_time_step,
     build_initial_state,
     build_simulator,
+    initial_history,
     run_attributes,
 )
 from lagfluid.data.store import TrajectoryWriter
@@ -95,6 +96,7 @@ def simulate(cfg: DictConfig) -> dict[str, Any]:
     state = build_initial_state(cfg)
     simulator = build_simulator(cfg)
     state = at_simulator_time_step(state, simulator, cfg)
+    history = initial_history(cfg, simulator)
     settings = SolverSettings.from_config(cfg.solver)
     guard = Guard(float(cfg.solver.guard.max_courant), int(cfg.solver.guard.check_every))
 
@@ -134,6 +136,7 @@ def simulate(cfg: DictConfig) -> dict[str, Any]:
             guard=guard,
             write_every=write_every,
             on_frame=on_frame,
+            history=history,
             progress=bool(cfg.progress),
         )
     except BaseException as err:  # a guard stop, a bug, Ctrl-C: the file says the run is incomplete and why

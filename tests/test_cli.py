@@ -50,6 +50,16 @@ def test_struct_mode_rejects_typos():
         _compose("stepz=3")
 
 
+@pytest.fixture(scope="module")
+def trajectory_file(tmp_path_factory):
+    """A two-step ``experiment=debug`` rollout for ``scene=trajectory``."""
+    from lagfluid.simulate import simulate
+
+    out = tmp_path_factory.mktemp("trajectory")
+    simulate(_compose("experiment=debug", "steps=2", f"out_dir={out}"))
+    return out / "rollout.h5"
+
+
 @pytest.mark.parametrize("model", available_models())
 @pytest.mark.parametrize("scene", _group_names("scene"))
 def test_every_model_and_scene_composes_and_instantiates(model, scene, request):
@@ -57,6 +67,8 @@ def test_every_model_and_scene_composes_and_instantiates(model, scene, request):
 
     # only the file scene and the authors' weights need ../shared; the other combinations run without it
     extra = [f"scene.path={request.getfixturevalue('authors_dam_grid')}"] if scene == "file" else []
+    if scene == "trajectory":
+        extra.append(f"scene.path={request.getfixturevalue('trajectory_file')}")
     if model in ("fgn", "hybrid"):
         extra.append(f"model.weights={request.getfixturevalue('untrained_weights')}")
     if model == "fgn_original":

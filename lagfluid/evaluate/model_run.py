@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -64,9 +65,16 @@ def one_step_errors(
 
 
 def run_model(
-    cfg: DictConfig, simulator: Simulator, state: ParticleState, out: Path, one_step: bool
+    cfg: DictConfig,
+    simulator: Simulator,
+    state: ParticleState,
+    out: Path,
+    one_step: bool,
+    history: Sequence[ParticleState] = (),
 ) -> dict[str, Any]:
     """Roll the model out into ``out`` (rollout.h5) and collect its one-step errors per stored frame.
+
+    ``history`` is handed to ``simulator.reset`` (:func:`lagfluid.config.initial_history`).
 
     Returns:
         ``complete``, ``stop_reason``, ``steps`` done, ``timing`` (median time per step and per stage as
@@ -116,6 +124,7 @@ def run_model(
             # Recording copies the intermediates: only when the one-step errors need them, so that timed
             # runs (evaluate.one_step=false) measure the simulator alone.
             record_when=makes_stored_frame if one_step else None,
+            history=history,
             progress=bool(cfg.progress),
         )
     except RolloutError as err:  # the model blew up: evaluate what it wrote

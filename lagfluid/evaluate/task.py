@@ -19,6 +19,7 @@ from lagfluid.config import (
     build_initial_state,
     build_simulator,
     git_commit,
+    initial_history,
     run_device,
     scene_params,
 )
@@ -93,12 +94,13 @@ def evaluate(cfg: DictConfig) -> dict[str, Any]:
     state = build_initial_state(cfg)
     simulator = build_simulator(cfg)
     state = at_simulator_time_step(state, simulator, cfg)
+    history = initial_history(cfg, simulator)
     options = replace(options, reference=reference_overrides(cfg, options, simulator, state))
     reference_path, reused, key = reference_rollout(cfg, options)
     out_dir = Path(cfg.out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     model_path = part_path(out_dir / "rollout.h5")
-    run = run_model(cfg, simulator, state, model_path, options.one_step)
+    run = run_model(cfg, simulator, state, model_path, options.one_step, history)
 
     settings = SolverSettings.from_config(cfg.solver)
     frames = compare(model_path, reference_path, settings)

@@ -10,6 +10,7 @@ dam_large  the same collapse with 40,000 fluid particles (20 x 50 x 40) for spee
 waterfall  80,000 fluid particles released in a corner, falling onto a ramp and round obstacles
 random     the paper's training scenes: seeded fluid block, velocity and 1-2 obstacles in an 80 x 80 box
 file       a grid file in the authors' format (``.npz`` or ``.txt``), option ``path``
+trajectory frame ``frame`` of a lagfluid trajectory file (:mod:`lagfluid.scenes.trajectory`), option ``path``
 ========== ===========================================================================================
 
 Example::
@@ -48,6 +49,12 @@ from lagfluid.scenes.library import (
     waterfall,
     waterfall_layout,
 )
+from lagfluid.scenes.trajectory import (
+    from_trajectory,
+    trajectory_history,
+    trajectory_params,
+    trajectory_states,
+)
 from lagfluid.scenes.validation import MIN_DISTANCE, check_particles
 from lagfluid.state import ParticleState, SceneError, SceneParams
 
@@ -71,6 +78,7 @@ __all__ = [
     "dam_large_layout",
     "dam_layout",
     "from_file",
+    "from_trajectory",
     "grid_bounds",
     "lattice_block",
     "load_grid",
@@ -78,6 +86,9 @@ __all__ = [
     "random_scene",
     "read_grid",
     "save_grid",
+    "trajectory_history",
+    "trajectory_params",
+    "trajectory_states",
     "waterfall",
     "waterfall_layout",
 ]
@@ -90,6 +101,7 @@ SCENES: dict[str, SceneBuilder] = {
     "waterfall": waterfall,
     "random": random_scene,
     "file": from_file,
+    "trajectory": from_trajectory,
 }
 """Scene name -> builder ``(params=None, dtype=torch.float32, **options) -> ParticleState``."""
 
@@ -103,7 +115,8 @@ def build_scene(
         name: a key of :data:`SCENES`.
         params: physical parameters (``l0`` sets the particle spacing); default :class:`SceneParams`.
         dtype: floating dtype of the state.
-        **options: the scene's options (e.g. ``seed`` for ``random``, ``path`` for ``file``).
+        **options: the scene's options (e.g. ``seed`` for ``random``, ``path`` for ``file``, ``path``
+            and ``frame`` for ``trajectory``).
 
     Returns:
         the validated initial state, particles sorted fluid, wall, dummy.
