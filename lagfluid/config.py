@@ -14,6 +14,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
@@ -110,6 +111,8 @@ def run_attributes(
         "density": params.density,
         "dim": params.dim,
         "n_fluid": state.n_fluid,
+        # the domain, so that a run started from this file (scene=trajectory) keeps the same guard
+        "bounds": None if state.bounds is None else state.bounds.detach().cpu().numpy().astype(np.float64),
         "config": OmegaConf.to_yaml(cfg, resolve=True),
         "version": lagfluid.__version__,
         "git_commit": git_commit(),

@@ -71,10 +71,11 @@ MAY_IMPORT: dict[str, frozenset[str]] = {
     # simulator-neutral: no models, no split-step stages, no MPS or PPE references
     "metrics": frozenset({"operators", "base"}),
     # formats only: never tasks, rollout, models or physics
-    "data": frozenset({"scenes", "operators", "base"}),
+    "data": frozenset({"operators", "base"}),
     # module level only: built-ins are loaded lazily by string, inside functions
     "registry": frozenset({"base"}),
-    "scenes": frozenset({"operators", "base"}),
+    # a scene may be read from a stored trajectory (scene=trajectory)
+    "scenes": frozenset({"data", "operators", "base"}),
     "viz": frozenset({"base"}),
     "operators": frozenset({"base"}),
     "base": frozenset(),

@@ -64,6 +64,8 @@ def test_the_state_is_the_stored_frame(original, frame):
     assert list(state.params.gravity) == list(attrs["gravity"])
     assert build_initial_state(_start(path, frame, "scene.params.viscosity=0.0")).params.viscosity == 0.0
     assert build_initial_state(_start(path, frame, "dt=0.001")).params.dt == 0.001
+    # the domain the original run was guarded in (run_attributes store it)
+    assert torch.equal(state.bounds, build_initial_state(_compose("experiment=debug")).bounds)
 
 
 # -------------------------------------------------------------------------- (b) continuing MPS from k

@@ -57,7 +57,7 @@ def reference_overrides(
         return overrides
     scene_dt = scene_params(cfg).dt
     ratio = float(own) / scene_dt
-    if abs(ratio - round(ratio)) > 1e-9 * ratio or round(ratio) < 1:
+    if abs(ratio - round(ratio)) > 1e-6 * ratio or round(ratio) < 1:
         raise ConfigError(
             f"model '{simulator.name}' steps by dt={own} s, not a whole multiple of the scene's "
             f"{scene_dt} s; "

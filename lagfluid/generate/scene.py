@@ -83,7 +83,6 @@ def generate_scene(cfg: DictConfig, spec: DataSpec, index: int) -> Path:
         "seed": seed,
         "sample_every": spec.sample_every,
         "steps": spec.steps,
-        "bounds": state.bounds.cpu().numpy().astype(np.float64) if state.bounds is not None else None,
         "fingerprint": spec.fingerprint(index),
         "dataset": spec.name,
         **sim.attributes(),

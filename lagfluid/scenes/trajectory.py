@@ -33,6 +33,7 @@ import h5py
 import numpy as np
 import torch
 
+from lagfluid.data.store import TrajectoryFileError, open_lagfluid_file
 from lagfluid.errors import ConfigError
 from lagfluid.scenes.grid_file import grid_bounds
 from lagfluid.scenes.validation import validated_state
@@ -50,26 +51,18 @@ GROUP = "00000"
 PARAMETER_KEYS = ("gravity", "viscosity", "density", "dt", "l0", "dim")
 """The :class:`~lagfluid.state.SceneParams` fields a trajectory file stores as attributes."""
 
-_FORMAT, _FORMAT_VERSION = "lagfluid", 1  # as lagfluid.data.store writes them
 _ARRAYS = ("time", "position", "velocity", "pressure", "boundary_position", "boundary_type")
 _SPACING_RTOL = 1e-6  # stored times are sums of float64 steps: equal spacings agree to round-off
 
 
 def _open(path: str | Path) -> h5py.File:
     """Open ``path`` read-only as a lagfluid trajectory file with group ``00000`` and its arrays."""
-    path = Path(path)
-    if not path.is_file():
-        raise SceneError(f"trajectory file not found: {path}")
     try:
-        f = h5py.File(path, "r")
-    except OSError as err:
-        raise SceneError(f"cannot read {path} as HDF5 (corrupt or truncated?): {err}") from None
+        f = open_lagfluid_file(path, "trajectory file")
+    except TrajectoryFileError as err:
+        raise SceneError(str(err)) from None
     problem = None
-    if f.attrs.get("format") != _FORMAT:
-        problem = f"is not a lagfluid trajectory file (format={f.attrs.get('format')!r})"
-    elif int(f.attrs.get("format_version", -1)) != _FORMAT_VERSION:
-        problem = f"has format_version {f.attrs.get('format_version')}; this lagfluid reads {_FORMAT_VERSION}"
-    elif GROUP not in f:
+    if GROUP not in f:
         problem = f"has no trajectory group '{GROUP}' (groups: {sorted(f)})"
     else:
         missing = [name for name in _ARRAYS if name not in f[GROUP]]
