@@ -1,8 +1,10 @@
 """A run's output files replace the previous run's together, and only once the run has ended.
 
-A task writes every output under its :func:`part_path` (``rollout.part.h5``) and calls :func:`publish` at the
-end: a folder never holds files of two runs, a run that fails before its first step leaves the last run's
-files untouched, and a run that ends incomplete keeps the last complete run's files in ``previous/``.
+A task calls :func:`begin` once everything that can fail before the first step has been checked, writes
+every output under its :func:`part_path` (``rollout.part.h5``) and calls :func:`publish` at the end,
+whatever happened in between: a folder never holds files of two runs, a run that fails before its first
+step leaves the last run's files untouched, and a run that ends incomplete keeps the last complete run's
+files in ``previous/``.
 """
 
 from __future__ import annotations
@@ -21,6 +23,13 @@ log = logging.getLogger(__name__)
 def part_path(path: Path) -> Path:
     """Where a run writes ``path`` until it ends: ``rollout.h5`` -> ``rollout.part.h5`` (same suffix)."""
     return path.with_name(f"{path.stem}.part{path.suffix}")
+
+
+def begin(out_dir: Path, names: Sequence[str]) -> None:
+    """Start a run in ``out_dir``: make it, and drop the part files a crashed earlier run left."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    for name in names:
+        part_path(out_dir / name).unlink(missing_ok=True)
 
 
 def _complete_rollout(path: Path) -> bool:

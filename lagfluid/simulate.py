@@ -35,7 +35,7 @@ from lagfluid.config import (
 from lagfluid.data.store import TrajectoryWriter
 from lagfluid.errors import RolloutError
 from lagfluid.metrics import field_metrics, summarize
-from lagfluid.outputs import part_path, publish
+from lagfluid.outputs import begin, part_path, publish
 from lagfluid.physics.stages import SolverSettings, lattice_constants
 from lagfluid.rollout import Guard, rollout, timing_summary
 from lagfluid.state import ParticleState, ParticleType
@@ -83,6 +83,23 @@ class _FrameMetrics:
         self.snapshots["last"] = snap
 
 
+def _write_preview(out_dir: Path, frames: _FrameMetrics, state: ParticleState, title: str) -> None:
+    """``preview.png`` of the first, middle and last frame; a failure to draw it costs only the figure."""
+    if not frames.snapshots:
+        return
+    from lagfluid.viz import preview
+
+    shots = [frames.snapshots[k] for k in ("first", "middle", "last") if k in frames.snapshots]
+    shots = [f for i, f in enumerate(shots) if i == 0 or f[0] != shots[i - 1][0]]
+    nf = state.n_fluid
+    walls = state.pos[nf:][state.ptype[nf:] == ParticleType.WALL]
+    try:
+        preview(part_path(out_dir / "preview.png"), shots, walls.cpu().numpy(), title)
+    except Exception as err:  # the rollout and its metrics matter more than the picture
+        part_path(out_dir / "preview.png").unlink(missing_ok=True)
+        log.warning("preview.png not written: %s: %s", type(err).__name__, err)
+
+
 def simulate(cfg: DictConfig) -> dict[str, Any]:
     """``task=simulate``: roll out ``cfg.model`` on ``cfg.scene`` and write the three output files."""
     torch.manual_seed(int(cfg.seed))
@@ -99,9 +116,10 @@ def simulate(cfg: DictConfig) -> dict[str, Any]:
     history = initial_history(cfg, simulator)
     settings = SolverSettings.from_config(cfg.solver)
     guard = Guard(float(cfg.solver.guard.max_courant), int(cfg.solver.guard.check_every))
+    simulator.reset(state, history)  # per-scene set-up can fail too (a plugin's checks, the history)
 
     out_dir = Path(cfg.out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
+    begin(out_dir, OUTPUTS)
     params, nf = state.params, state.n_fluid
     write_every = int(cfg.write_every)
     attrs = run_attributes(state, cfg, simulator.name, str(cfg.scene.name), write_every)
@@ -136,8 +154,8 @@ def simulate(cfg: DictConfig) -> dict[str, Any]:
             guard=guard,
             write_every=write_every,
             on_frame=on_frame,
-            history=history,
             progress=bool(cfg.progress),
+            reset=False,
         )
     except BaseException as err:  # a guard stop, a bug, Ctrl-C: the file says the run is incomplete and why
         stop_reason = str(err) if isinstance(err, RolloutError) else f"{type(err).__name__}: {err}"
@@ -145,48 +163,39 @@ def simulate(cfg: DictConfig) -> dict[str, Any]:
         record = getattr(err, "record", record)
         raise
     finally:
-        for key, value in simulator.attributes().items():
-            writer.group.attrs[key] = value
-        writer.close(complete=complete, stop_reason=stop_reason)
-        if frames.snapshots:
-            from lagfluid.viz import preview
-
-            shots = [frames.snapshots[k] for k in ("first", "middle", "last") if k in frames.snapshots]
-            shots = [f for i, f in enumerate(shots) if i == 0 or f[0] != shots[i - 1][0]]
-            walls = state.pos[boundary][state.ptype[boundary] == ParticleType.WALL]
-            preview(
-                part_path(out_dir / "preview.png"),
-                shots,
-                walls.cpu().numpy(),
-                f"{simulator.name} on {cfg.scene.name}",
-            )
-        metrics = {
-            "model": simulator.name,
-            "scene": str(cfg.scene.name),
-            "complete": complete,
-            "stop_reason": stop_reason,
-            "steps_requested": int(cfg.steps),
-            "steps": len(record["step_seconds"]),
-            "dt": params.dt,
-            "device": str(cfg.device),
-            "dtype": str(cfg.dtype),
-            "parameters": int(simulator.parameters),
-            "particles": {
-                "fluid": nf,
-                "wall": int(state.wall_mask.sum()),
-                "dummy": int(state.dummy_mask.sum()),
-            },
-            **timing_summary(record),
-            "density_error": summarize(frames.density_errors),
-            "velocity_divergence_per_s": summarize(frames.divergences),
-            "frames_evaluated": len(frames.density_errors),
-            "wall_time_total_s": time.perf_counter() - start,
-            "simulator": simulator.attributes(),
-            "version": lagfluid.__version__,
-            "git_commit": attrs["git_commit"],
-        }
-        part_path(out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2))
-        publish(out_dir, OUTPUTS, complete)
+        try:
+            for key, value in simulator.attributes().items():
+                writer.group.attrs[key] = value
+            writer.close(complete=complete, stop_reason=stop_reason)
+            metrics = {
+                "model": simulator.name,
+                "scene": str(cfg.scene.name),
+                "complete": complete,
+                "stop_reason": stop_reason,
+                "steps_requested": int(cfg.steps),
+                "steps": len(record["step_seconds"]),
+                "dt": params.dt,
+                "device": str(cfg.device),
+                "dtype": str(cfg.dtype),
+                "parameters": int(simulator.parameters),
+                "particles": {
+                    "fluid": nf,
+                    "wall": int(state.wall_mask.sum()),
+                    "dummy": int(state.dummy_mask.sum()),
+                },
+                **timing_summary(record),
+                "density_error": summarize(frames.density_errors),
+                "velocity_divergence_per_s": summarize(frames.divergences),
+                "frames_evaluated": len(frames.density_errors),
+                "wall_time_total_s": time.perf_counter() - start,
+                "simulator": simulator.attributes(),
+                "version": lagfluid.__version__,
+                "git_commit": attrs["git_commit"],
+            }
+            part_path(out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2))
+            _write_preview(out_dir, frames, state, f"{simulator.name} on {cfg.scene.name}")
+        finally:  # whatever failed above, the folder holds one run's files
+            publish(out_dir, OUTPUTS, complete)
     log.info(
         "wrote %s: %d steps, %.1f ms/step median, density error mean %.4f",
         out_dir,

@@ -98,3 +98,51 @@ def test_an_incomplete_rerun_keeps_the_last_complete_run_in_previous(tmp_path):
     with h5py.File(tmp_path / "rollout.h5", "r") as f:
         assert float(f["00000"].attrs["dt"]) == 0.05
     assert not part_path(tmp_path / "rollout.h5").exists()
+
+
+def test_a_failing_preview_costs_only_the_figure(tmp_path, monkeypatch, caplog):
+    import lagfluid.viz
+
+    simulate(_compose("experiment=debug", "steps=2", f"out_dir={tmp_path}"))
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("no display")
+
+    monkeypatch.setattr(lagfluid.viz, "preview", broken)
+    metrics = simulate(_compose("experiment=debug", "steps=4", f"out_dir={tmp_path}"))
+    assert metrics["complete"] and json.loads((tmp_path / "metrics.json").read_text())["steps"] == 4
+    with h5py.File(tmp_path / "rollout.h5", "r") as f:
+        assert f["00000/position"].shape[0] == 5  # this run's rollout, published
+    assert not (tmp_path / "preview.png").exists()  # the old run's picture went with the old run
+    assert "preview.png not written: RuntimeError: no display" in caplog.text
+
+
+def test_part_files_of_a_crashed_run_are_never_published(tmp_path):
+    tmp_path.mkdir(exist_ok=True)
+    stale = part_path(tmp_path / "preview.png")
+    stale.write_bytes(b"left by a crash")
+    simulate(_compose("experiment=debug", "steps=2", f"out_dir={tmp_path}"))
+    assert (tmp_path / "preview.png").read_bytes() != b"left by a crash" and not stale.exists()
+
+
+def test_a_simulator_failing_in_reset_keeps_the_last_outputs(tmp_path, monkeypatch):
+    from lagfluid import registry
+    from lagfluid.models.mps_simulator import build_mps
+
+    simulate(_compose("experiment=debug", "steps=2", f"out_dir={tmp_path}"))
+    before = {p.name: p.read_bytes() for p in tmp_path.iterdir() if p.is_file()}
+
+    def refusing(cfg):
+        sim = build_mps(cfg)
+
+        def reset(state, history=()):
+            raise LagfluidError("this scene is not for me")
+
+        sim.reset = reset
+        return sim
+
+    monkeypatch.setitem(registry._REGISTERED, "refusing", refusing)
+    with pytest.raises(LagfluidError, match="not for me"):
+        simulate(_compose("experiment=debug", "model.name=refusing", "steps=2", f"out_dir={tmp_path}"))
+    assert {p.name: p.read_bytes() for p in tmp_path.iterdir() if p.is_file()} == before
+    assert not (tmp_path / "previous").exists()

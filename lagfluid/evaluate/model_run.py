@@ -71,10 +71,12 @@ def run_model(
     out: Path,
     one_step: bool,
     history: Sequence[ParticleState] = (),
+    reset: bool = True,
 ) -> dict[str, Any]:
     """Roll the model out into ``out`` (rollout.h5) and collect its one-step errors per stored frame.
 
-    ``history`` is handed to ``simulator.reset`` (:func:`lagfluid.config.initial_history`).
+    With ``reset`` the rollout first calls ``simulator.reset(state, history)`` (``history``:
+    :func:`lagfluid.config.initial_history`); pass False when the caller has reset it already.
 
     Returns:
         ``complete``, ``stop_reason``, ``steps`` done, ``timing`` (median time per step and per stage as
@@ -126,6 +128,7 @@ def run_model(
             record_when=makes_stored_frame if one_step else None,
             history=history,
             progress=bool(cfg.progress),
+            reset=reset,
         )
     except RolloutError as err:  # the model blew up: evaluate what it wrote
         complete, stop_reason = False, str(err)

@@ -9,7 +9,6 @@ from pathlib import Path
 from statistics import median
 from typing import Any
 
-import numpy as np
 from omegaconf import DictConfig
 
 from lagfluid.config import run_attributes
