@@ -202,13 +202,18 @@ def initial_history(cfg: DictConfig, simulator: Simulator) -> list[ParticleState
     return [s.to(device=device) for s in history]
 
 
+def folder_name(overrides: str) -> str:
+    """``k1=v1,k2=v2`` as a file name: path separators and awkward characters become ``_``, cut at 120."""
+    return re.sub(r"[^A-Za-z0-9=.,+_-]", "_", overrides)[:120]
+
+
 def job_folder(num: int, override_dirname: str) -> str:
     """The folder of multirun job ``num`` under ``out_dir``: its number and the overrides that made it.
 
-    ``override_dirname`` is Hydra's ``k1=v1,k2=v2`` of the job; path separators and characters that are
-    awkward in file names become ``_`` and long names are cut (the number keeps folders unique).
+    ``override_dirname`` is Hydra's ``k1=v1,k2=v2`` of the job (:func:`folder_name`; the number keeps
+    folders unique when names are cut).
     """
-    name = re.sub(r"[^A-Za-z0-9=.,+_-]", "_", override_dirname)[:120]
+    name = folder_name(override_dirname)
     return f"{num}_{name}" if name else str(num)
 
 
@@ -216,7 +221,10 @@ def multirun_out_dir(cfg: DictConfig) -> Path | None:
     """``<out_dir>/<job folder>`` when ``cfg`` is a job of a Hydra multirun, else None.
 
     Every job of a sweep resolves the same ``out_dir`` unless it happens to interpolate what the sweep
-    varies; one folder per job keeps one job's ``rollout.h5`` from replacing another's.
+    varies; one folder per job keeps one job's ``rollout.h5`` from replacing another's. ``task=train`` is
+    the exception for ``stage``: the trainables of one model write files of their own names into one
+    folder (``model.weights=<folder>`` loads them together), so jobs that differ only in ``stage`` share
+    ``<out_dir>/<the other overrides>`` (``out_dir`` itself when there are none).
     """
     from hydra.core.hydra_config import HydraConfig
     from hydra.types import RunMode
@@ -226,4 +234,9 @@ def multirun_out_dir(cfg: DictConfig) -> Path | None:
     hydra_cfg = HydraConfig.get()
     if hydra_cfg.mode != RunMode.MULTIRUN:
         return None
-    return Path(str(cfg.out_dir)) / job_folder(int(hydra_cfg.job.num), str(hydra_cfg.job.override_dirname))
+    out_dir = Path(str(cfg.out_dir))
+    if cfg.task != "train":
+        return out_dir / job_folder(int(hydra_cfg.job.num), str(hydra_cfg.job.override_dirname))
+    exclude = {*hydra_cfg.job.config.override_dirname.exclude_keys, "stage"}
+    others = sorted(o for o in hydra_cfg.overrides.task if o.split("=", 1)[0].lstrip("+~") not in exclude)
+    return out_dir / folder_name(",".join(others)) if others else out_dir

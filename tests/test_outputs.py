@@ -146,3 +146,36 @@ def test_a_simulator_failing_in_reset_keeps_the_last_outputs(tmp_path, monkeypat
         simulate(_compose("experiment=debug", "model.name=refusing", "steps=2", f"out_dir={tmp_path}"))
     assert {p.name: p.read_bytes() for p in tmp_path.iterdir() if p.is_file()} == before
     assert not (tmp_path / "previous").exists()
+
+
+@pytest.mark.parametrize(
+    ("task", "overrides", "folder"),
+    [
+        ("simulate", ["dt=0.001", "threads=1"], "1_dt=0.001"),
+        ("train", ["stage=collision", "threads=1"], ""),  # the trainables of one model share a folder
+        ("train", ["stage=collision", "train.lr_start=0.01"], "train.lr_start=0.01"),
+    ],
+)
+def test_the_job_folder_rule(tmp_path, task, overrides, folder):
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.types import RunMode
+    from omegaconf import open_dict
+
+    from lagfluid.config import multirun_out_dir
+
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        cfg = compose(
+            config_name="config",
+            overrides=[f"task={task}", f"out_dir={tmp_path}", *overrides],
+            return_hydra_config=True,
+        )
+    with open_dict(cfg):
+        cfg.hydra.mode = RunMode.MULTIRUN
+        cfg.hydra.job.num = 1
+        cfg.hydra.job.override_dirname = ",".join(o for o in overrides if not o.startswith("threads"))
+        cfg.hydra.overrides.task = overrides
+    HydraConfig.instance().set_config(cfg)
+    try:
+        assert multirun_out_dir(cfg) == (tmp_path / folder if folder else tmp_path)
+    finally:
+        HydraConfig.instance().cfg = None
