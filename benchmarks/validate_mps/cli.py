@@ -31,7 +31,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(
         prog="python -m benchmarks.validate_mps", description=benchmarks.validate_mps.__doc__.splitlines()[0]
     )
-    parser.add_argument("--quick", action="store_true", help="reduced sizes and durations (< ~3 min)")
+    parser.add_argument(
+        "--quick",
+        action="store_true",
+        help="reduced sizes and durations (runtime: benchmarks/results/validate_mps_quick.md)",
+    )
     parser.add_argument("--out", type=Path, default=None, help="path stem for .md/.csv (default results/)")
     parser.add_argument(
         "--profile",
