@@ -26,7 +26,7 @@ from typing import Any
 import torch
 from omegaconf import OmegaConf
 
-from benchmarks.validate_mps import make_sim, metrics_of, profile_config, solver_config
+from benchmarks.validate_mps.common import make_sim, metrics_of, profile_config, solver_config
 from lagfluid.errors import LagfluidError
 from lagfluid.physics.stages import SolverSettings
 from lagfluid.rollout import rollout
