@@ -66,6 +66,20 @@ def _entry_points(group: str = ENTRY_POINT_GROUP) -> dict[str, metadata.EntryPoi
     return {ep.name: ep for ep in metadata.entry_points(group=group)}
 
 
+class PluginError(LagfluidError):
+    """A plugin's entry point that cannot be loaded; the message names the plugin, its group and target."""
+
+
+def _load_entry_point(ep: metadata.EntryPoint) -> Any:
+    """``ep.load()``, with a failure (a missing module, a typo in the target) named in one line."""
+    try:
+        return ep.load()
+    except Exception as err:  # whatever the plugin's import raises
+        raise PluginError(
+            f"plugin '{ep.name}' ({ep.group} = {ep.value!r}) cannot be loaded: {type(err).__name__}: {err}"
+        ) from err
+
+
 def _load(target: str) -> Any:
     module, attr = target.split(":")
     return getattr(import_module(module), attr)
@@ -88,7 +102,7 @@ def get_simulator_factory(name: str) -> SimulatorFactory:
         return _load(_BUILTIN[name])
     eps = _entry_points()
     if name in eps:
-        return eps[name].load()
+        return _load_entry_point(eps[name])
     raise UnknownNameError(f"unknown model '{name}'; available: {', '.join(available_simulators())}")
 
 
@@ -121,7 +135,7 @@ def get_trainables_factory(model: str) -> TrainablesFactory:
         return _load(_BUILTIN_TRAINABLES[model])
     eps = _entry_points(TRAINABLES_GROUP)
     if model in eps:
-        return eps[model].load()
+        return _load_entry_point(eps[model])
     raise UnknownNameError(
         f"model '{model}' has nothing to train (task=train); models with trainables: "
         f"{', '.join(trainable_models())}"

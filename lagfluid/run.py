@@ -112,11 +112,14 @@ def _hydra_main(cfg: DictConfig) -> None:
 
 def main() -> None:
     """Entry point of ``python -m lagfluid.run``."""
-    problem = check_command_line(sys.argv[1:])
+    try:
+        problem = check_command_line(sys.argv[1:])
+        _register_plugin_configs()
+    except LagfluidError as err:  # a broken plugin (its configs, its entry point): one line, not a traceback
+        problem = f"lagfluid: {err}"
     if problem:
         sys.stderr.write(problem + "\n")  # before Hydra has set up logging: one plain line
         sys.exit(2)
-    _register_plugin_configs()
     _hydra_main()
 
 

@@ -105,3 +105,35 @@ def test_simulate_runs_a_model_at_its_own_time_step(tmp_path, monkeypatch):
     assert json.loads((tmp_path / "metrics.json").read_text())["dt"] == 0.004
     with pytest.raises(ConfigError, match=r"steps by its own dt=0.004 s.*dt=0.001 cannot change that"):
         simulate(_compose("experiment=debug", "model.name=free_fall", "dt=0.001", f"out_dir={tmp_path}"))
+
+
+def test_a_broken_plugin_is_one_clear_error(monkeypatch, tmp_path):
+    import subprocess
+    import sys
+    from importlib import metadata
+
+    from lagfluid.registry import ENTRY_POINT_GROUP, PluginError, get_simulator_factory
+
+    ghost = metadata.EntryPoint(name="ghost", value="no_such_module:build", group=ENTRY_POINT_GROUP)
+    real = metadata.entry_points
+    monkeypatch.setattr(
+        registry.metadata,
+        "entry_points",
+        lambda **kw: metadata.EntryPoints([ghost]) if kw.get("group") == ENTRY_POINT_GROUP else real(**kw),
+    )
+    with pytest.raises(PluginError, match=r"plugin 'ghost' \(lagfluid.simulators = 'no_such_module:build'\)"):
+        get_simulator_factory("ghost")
+    # a plugin whose config package is missing: the command line says so in one line, exit 2
+    dist = tmp_path / "ghost-0.1.dist-info"
+    dist.mkdir()
+    (dist / "METADATA").write_text("Metadata-Version: 2.1\nName: ghost\nVersion: 0.1\n")
+    (dist / "entry_points.txt").write_text("[lagfluid.configs]\nghost = no_such_package.conf\n")
+    env = {**__import__("os").environ, "PYTHONPATH": str(tmp_path)}
+    out = subprocess.run(
+        [sys.executable, "-m", "lagfluid.run", "model=mps", "--cfg", "job"],
+        capture_output=True,
+        text=True,
+        env=env,
+    )
+    assert out.returncode == 2 and "plugin 'ghost': config package 'no_such_package.conf'" in out.stderr
+    assert "Traceback" not in out.stderr
