@@ -23,11 +23,9 @@ from lagfluid.errors import ConfigError, RolloutError, SceneError
 from lagfluid.models.simulator import Simulator, check_simulator
 from lagfluid.registry import check_scene_name, get_simulator_factory
 from lagfluid.scenes import build_scene, trajectory_history, trajectory_params
-from lagfluid.state import ParticleState, SceneParams
+from lagfluid.state import ParticleState, SceneParams, parse_dtype
 
 log = logging.getLogger(__name__)
-
-DTYPES = {"float32": torch.float32, "float64": torch.float64}
 
 
 def git_commit() -> str:
@@ -67,15 +65,8 @@ def scene_params(cfg: DictConfig) -> SceneParams:
 
 
 def run_dtype(cfg: DictConfig) -> torch.dtype:
-    """The floating dtype of ``cfg.dtype``.
-
-    Raises:
-        RolloutError: not ``float32`` or ``float64``.
-    """
-    dtype = DTYPES.get(str(cfg.dtype))
-    if dtype is None:
-        raise RolloutError(f"unknown dtype '{cfg.dtype}'; available: {', '.join(DTYPES)}")
-    return dtype
+    """The floating dtype of ``cfg.dtype`` (:func:`lagfluid.state.parse_dtype`)."""
+    return parse_dtype(cfg.dtype)
 
 
 def run_device(cfg: DictConfig) -> torch.device:

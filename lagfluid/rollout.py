@@ -12,7 +12,6 @@ carries what was measured up to then.
 
 from __future__ import annotations
 
-import math
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -161,24 +160,3 @@ def rollout(
     finally:
         bar.close()
     return state, record
-
-
-def timing_summary(record: dict[str, Any]) -> dict[str, Any]:
-    """Median time per step and per stage, steps per second and PPE statistics of a rollout record."""
-    steps = record["step_seconds"]
-    out: dict[str, Any] = {
-        "time_per_step_median_s": median(steps) if steps else math.nan,
-        "steps_per_second": 1.0 / median(steps) if steps else math.nan,
-        "stage_median_s": {k: median(v) for k, v in record["stage_seconds"].items()},
-    }
-    info = record["info"]
-    if "ppe_iterations" in info:
-        it = info["ppe_iterations"]
-        out["ppe"] = {
-            "iterations_median": median(it),
-            "iterations_max": max(it),
-            "relative_residual_median": median(info["ppe_residual"]),
-            "not_converged_steps": int(sum(1 for c in info["ppe_converged"] if not c)),
-            "unknowns_median": median(info["ppe_unknowns"]),
-        }
-    return out

@@ -16,8 +16,10 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import time
 from pathlib import Path
+from statistics import median
 from typing import Any
 
 import numpy as np
@@ -37,12 +39,33 @@ from lagfluid.errors import RolloutError
 from lagfluid.metrics import field_metrics, summarize
 from lagfluid.outputs import begin, part_path, publish
 from lagfluid.physics.stages import SolverSettings, lattice_constants
-from lagfluid.rollout import Guard, rollout, timing_summary
+from lagfluid.rollout import Guard, rollout
 from lagfluid.state import ParticleState, ParticleType
 
 log = logging.getLogger(__name__)
 
 OUTPUTS = ("rollout.h5", "metrics.json", "preview.png")
+
+
+def timing_summary(record: dict[str, Any]) -> dict[str, Any]:
+    """Median time per step and per stage, steps per second and PPE statistics of a rollout record."""
+    steps = record["step_seconds"]
+    out: dict[str, Any] = {
+        "time_per_step_median_s": median(steps) if steps else math.nan,
+        "steps_per_second": 1.0 / median(steps) if steps else math.nan,
+        "stage_median_s": {k: median(v) for k, v in record["stage_seconds"].items()},
+    }
+    info = record["info"]
+    if "ppe_iterations" in info:
+        it = info["ppe_iterations"]
+        out["ppe"] = {
+            "iterations_median": median(it),
+            "iterations_max": max(it),
+            "relative_residual_median": median(info["ppe_residual"]),
+            "not_converged_steps": int(sum(1 for c in info["ppe_converged"] if not c)),
+            "unknowns_median": median(info["ppe_unknowns"]),
+        }
+    return out
 
 
 class _FrameMetrics:

@@ -20,9 +20,24 @@ from enum import IntEnum
 import torch
 from torch import Tensor
 
-from lagfluid.errors import SceneError
+from lagfluid.errors import RolloutError, SceneError
 
-__all__ = ["ParticleState", "ParticleType", "SceneError", "SceneParams"]
+__all__ = ["DTYPES", "ParticleState", "ParticleType", "SceneError", "SceneParams", "parse_dtype"]
+
+DTYPES = {"float32": torch.float32, "float64": torch.float64}
+"""The floating dtypes a run may use (``dtype=`` on the command line)."""
+
+
+def parse_dtype(name: object) -> torch.dtype:
+    """The torch dtype named ``name`` (``float32`` or ``float64``).
+
+    Raises:
+        RolloutError: any other name.
+    """
+    dtype = DTYPES.get(str(name))
+    if dtype is None:
+        raise RolloutError(f"unknown dtype '{name}'; available: {', '.join(DTYPES)}")
+    return dtype
 
 
 class ParticleType(IntEnum):

@@ -88,9 +88,8 @@ def stage_loss(pred: Tensor, target: Tensor, loss: str, delta: float = 1.0) -> T
 
 def _loss_fn(trainable: Trainable, name: str, delta: float) -> Any:
     """``loss(prediction, target)``: the trainable's own, else ``train.loss.<name>`` (checked now)."""
-    own = getattr(trainable, "loss", None)
-    if callable(own):
-        return own
+    if trainable.loss is not None:
+        return trainable.loss
     stage_loss(torch.zeros(1), torch.zeros(1), name, delta)  # an unknown loss fails before any work
     return lambda pred, target: stage_loss(pred, target, name, delta)
 

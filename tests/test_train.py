@@ -27,6 +27,7 @@ class LinearFit:
     """A toy trainable: a linear map fitted to y = x @ W, no FGN anywhere."""
 
     model = "toy"
+    loss = None
 
     def __init__(self, name: str) -> None:
         self.name, self.options = name, {"width": 3}

@@ -8,7 +8,6 @@ rows are timed steps in this process. A failed row is recorded, not raised.
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import math
 import time
@@ -37,18 +36,6 @@ from lagfluid.evaluate import evaluate
 from lagfluid.rollout import Guard, rollout
 
 log = logging.getLogger("benchmarks.tables")
-
-
-def trainable_parameters(sim: Any) -> int:
-    """A built simulator's trainable parameters: its ``parameters`` attribute (0 for MPS).
-
-    Simulators without that attribute yet report them per network in ``attributes()["networks"]``.
-    """
-    count = getattr(sim, "parameters", None)
-    if isinstance(count, int) and not isinstance(count, bool):
-        return count
-    networks = json.loads(sim.attributes().get("networks", "{}") or "{}")
-    return sum(int(n.get("parameters", 0)) for n in networks.values())
 
 
 @dataclass
@@ -219,7 +206,7 @@ class Bench:
                 "complete": True,
                 "fluid": state.n_fluid,
                 "particles": state.num_particles,
-                "parameters": trainable_parameters(sim) or None,
+                "parameters": int(sim.parameters) or None,
                 "step_ms": 1e3 * median(steps),
                 "neighbors_ms": 1e3 * median(nns),
                 "inference_ms": 1e3 * median(s - n for s, n in zip(steps, nns, strict=True)),

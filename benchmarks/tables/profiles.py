@@ -97,7 +97,7 @@ FULL = Profile(
     description=(
         "dam collapse: the authors' 4,000-particle dam, 1 s (500 steps of 2 ms), frames every 40 ms; water "
         "fall at half size (scene.scale=0.5: 10,000 fluid particles at the same l0, every length halved; "
-        "the paper's 80,000 cost ~5 s per MPS step here), 0.6 s; Table 2 on dam_large (40,000)"
+        "the paper's 80,000 are a GPU size), 0.6 s; Table 2 on dam_large (40,000)"
     ),
 )
 

@@ -1,4 +1,8 @@
-"""Normalisation statistics of a generated dataset, computed from scene files in one streaming pass."""
+"""Statistics that describe a generated dataset (``metadata.json``), computed from its files in one pass.
+
+They describe the data (LagrangeBench keys included); a network's normalisation is fitted by its trainable
+(:mod:`lagfluid.models.trainable`) and lives in its checkpoint.
+"""
 
 from __future__ import annotations
 

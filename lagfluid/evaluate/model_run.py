@@ -25,7 +25,8 @@ from lagfluid.neighbor_list import VerletNeighborList
 from lagfluid.physics.mps import ExactAdvection
 from lagfluid.physics.reference import exact_context, mps_constants, mps_neighbor_list, ppe_relative_residual
 from lagfluid.physics.stages import MPSConstants, SolverSettings, SplitStepFields
-from lagfluid.rollout import Guard, rollout, timing_summary
+from lagfluid.rollout import Guard, rollout
+from lagfluid.simulate import timing_summary
 from lagfluid.state import ParticleState
 
 log = logging.getLogger(__name__)

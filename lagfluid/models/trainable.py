@@ -13,7 +13,7 @@ A trainable is built by its model's factory from the composed config (``factory(
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, Protocol, runtime_checkable
 
@@ -34,14 +34,14 @@ class Trainable(Protocol):
             every checkpoint as ``model``.
         options: the network's constructor options (plain JSON-able dict), recorded in the checkpoint so
             that it rebuilds its own architecture, and part of the resume fingerprint.
-
-    Optionally, ``loss(prediction, target) -> Tensor`` (a scalar): the trainable's own loss; without it the
-    loop uses ``train.loss.<name>`` (``mse`` or ``huber``) on the two.
+        loss: the trainable's own ``loss(prediction, target) -> Tensor`` (a scalar), or None: the loop
+            then uses ``train.loss.<name>`` (``mse`` or ``huber``) on the two.
     """
 
     name: str
     model: str
     options: dict[str, Any]
+    loss: Callable[[Tensor, Tensor], Tensor] | None
 
     def datasets(self, data_dir: Path) -> tuple[Any, Any]:
         """``(train, valid)`` map-style datasets of PyG :class:`~torch_geometric.data.Data` items.

@@ -96,7 +96,6 @@ class SolverSettings:
     neighbor_backend: str = "auto"
     neighbor_skin_fraction: float = 0.3
     wall_hops: int | None = 2
-    extra_radii: tuple[float, ...] = ()  # radii (in l0) that learned stages need beyond the MPS ones
 
     def __post_init__(self) -> None:
         from lagfluid.neighbors import BACKENDS
@@ -154,7 +153,7 @@ class SolverSettings:
     @classmethod
     def from_config(cls, cfg: Any) -> SolverSettings:
         """Build from a ``solver`` config node (an ``omegaconf.DictConfig`` or a plain dict)."""
-        plain = {k: cfg[k] for k in cls.__dataclass_fields__ if k in cfg and k != "extra_radii"}
+        plain = {k: cfg[k] for k in cls.__dataclass_fields__ if k in cfg}
         # Nested keys present in the config; absent ones keep the dataclass defaults (one source of truth).
         # The casts matter: YAML reads 1e-6 (no dot) as a string.
         for (group, key), (name, cast) in _NESTED_KEYS.items():
@@ -164,11 +163,6 @@ class SolverSettings:
             elif key in node:  # an explicit null, e.g. neighbors.wall_hops: null
                 plain[name] = None
         return cls(**plain)
-
-    @property
-    def max_radius(self) -> float:
-        """Largest radius any stage uses, in l0."""
-        return max(self.re_density, self.re_gradient, self.re_laplacian, self.re_collision, *self.extra_radii)
 
 
 @dataclass(frozen=True)
@@ -383,6 +377,10 @@ class AdvectionStage(Protocol):
         """Acceleration of the fluid particles at ``(x^n, v^n)`` (full (N, 3) arrays)."""
         ...
 
+    def radii(self, settings: SolverSettings, params: SceneParams) -> tuple[float, ...]:
+        """Radii (in l0) this stage asks the step context for: the neighbour list covers the largest."""
+        ...
+
 
 class CollisionStage(Protocol):
     """Short-range repulsion: returns corrected fluid velocities ``v**`` (N_fluid, 3)."""
@@ -391,12 +389,20 @@ class CollisionStage(Protocol):
         """Corrected fluid velocities at ``(x*, v*)`` (full (N, 3) arrays)."""
         ...
 
+    def radii(self, settings: SolverSettings, params: SceneParams) -> tuple[float, ...]:
+        """Radii (in l0) this stage asks the step context for: the neighbour list covers the largest."""
+        ...
+
 
 class PressureStage(Protocol):
     """Pressure projection: returns the pressure (N,) of every particle at ``(x**, v**)``."""
 
     def __call__(self, ctx: StepContext, pos: Tensor, vel: Tensor) -> Tensor:
         """Pressure of all particles (zero where not computed)."""
+        ...
+
+    def radii(self, settings: SolverSettings, params: SceneParams) -> tuple[float, ...]:
+        """Radii (in l0) this stage asks the step context for: the neighbour list covers the largest."""
         ...
 
 
@@ -409,8 +415,8 @@ def stage_cutoff(
 ) -> float:
     """Largest radius (in l0) a split step with these stages searches for this scene: its neighbour cutoff.
 
-    A stage reports its radii with ``radii(settings, params)``; a stage without that method is assumed to
-    need every radius of the settings; a pressure stage adds the correction's ``re_gradient``. FGN needs
+    Every stage reports its radii with ``radii(settings, params)`` (the stage protocols); a pressure stage
+    adds the correction's ``re_gradient``. FGN needs
     2.1 l0 where MPS needs 3.1 l0 (the Laplacian): a list at 2.1 + skin holds ~2.6x fewer candidate pairs
     to filter every step.
 
@@ -425,8 +431,7 @@ def stage_cutoff(
     for stage in (advection, collision, pressure):
         if stage is None:
             continue
-        radii = getattr(stage, "radii", None)
-        needed += list(radii(settings, params)) if radii else [settings.max_radius]
+        needed += list(stage.radii(settings, params))
     return max(needed, default=settings.re_collision)
 
 
@@ -445,7 +450,6 @@ class SplitStepSimulator:
 
     dt: float | None = None
     history_length: int = 0
-    fields_type = SplitStepFields
 
     def __init__(
         self,

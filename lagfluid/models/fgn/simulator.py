@@ -27,6 +27,7 @@ from lagfluid.models.fgn.original import load_original_network
 from lagfluid.models.fgn.stages import LearnedAdvection, LearnedCollision, LearnedPressure
 from lagfluid.physics.mps import CollisionRule, ExactAdvection, ExactPressure
 from lagfluid.physics.stages import SolverSettings, SplitStepSimulator
+from lagfluid.state import parse_dtype
 
 log = logging.getLogger(__name__)
 
@@ -73,7 +74,7 @@ def load_stage_network(kind: str, model_cfg: Any) -> tuple[torch.nn.Module, dict
     if not path.is_file():
         hint = (
             "no weights are shipped for it yet; train them with python -m lagfluid.run task=train "
-            f"stage={kind} and pass model.weights=<run dir>"
+            f"model={model_cfg.get('name', 'fgn')} stage={kind} and pass model.weights=<run dir>"
             if weights is None
             else "pass the out_dir of a task=train run, or model.weights=null for the shipped ones"
         )
@@ -95,7 +96,7 @@ def build_split_step(cfg: Any) -> LearnedSplitStep:
         raise ConfigError(
             f"model.stages must give each of {', '.join(KINDS)} one of {', '.join(CHOICES)}; got {stages}"
         )
-    dtype = getattr(torch, str(cfg.get("dtype", "float32")))
+    dtype = parse_dtype(cfg.get("dtype", "float32"))
     device = torch.device(str(cfg.get("device", "cpu")))
     impl: dict[str, Any] = {}
     sources: dict[str, Any] = {}

@@ -212,6 +212,7 @@ class FGNStage:
     """
 
     model = "fgn"
+    loss = None  # train.loss.<name> (the profiles: mse, Huber for the pressure net)
     samples: type = AdvectionSamples
     graph_fluid_only: bool | None = None  # cache a kernel graph per item (into the fluid only), or none
 

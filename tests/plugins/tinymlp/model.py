@@ -82,6 +82,7 @@ class TinyMLPTrainable:
 
     name = NAME
     model = NAME
+    loss = None  # train.loss.tiny_mlp
 
     def __init__(self, cfg: Any) -> None:
         self.options = OmegaConf.to_container(cfg.model[NAME], resolve=True)
