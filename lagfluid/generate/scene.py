@@ -109,6 +109,7 @@ def generate_scene(cfg: DictConfig, spec: DataSpec, index: int) -> Path:
             on_step=keep_sample,
             record_when=lambda s: s.step % every == 0,  # recording costs copies: only the sampled steps
             progress=bool(cfg.progress),
+            reset=False,  # reset above: its constants are in the file's attributes
         )
         sim_seconds = time.perf_counter() - start
         collisions = write_collision_samples(
