@@ -48,10 +48,13 @@ def publish(out_dir: Path, names: Sequence[str], complete: bool) -> None:
         out_dir: the run's folder.
         names: its output file names; ``names[0]`` is the rollout whose ``complete`` flag marks a finished
             earlier run.
-        complete: whether this run finished; if not, a finished earlier run's files move to ``previous/``.
+        complete: whether this run finished; if not, a finished earlier run's files move to ``previous/``
+            (and a finished run removes ``previous/``: it holds the last complete run only).
     """
     old = [out_dir / name for name in names if (out_dir / name).exists()]
-    if old and not complete and _complete_rollout(out_dir / names[0]):
+    if complete:  # a complete run supersedes the one an incomplete run had set aside
+        shutil.rmtree(out_dir / "previous", ignore_errors=True)
+    elif old and _complete_rollout(out_dir / names[0]):
         keep = out_dir / "previous"
         shutil.rmtree(keep, ignore_errors=True)
         keep.mkdir()

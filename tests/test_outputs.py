@@ -98,6 +98,8 @@ def test_an_incomplete_rerun_keeps_the_last_complete_run_in_previous(tmp_path):
     with h5py.File(tmp_path / "rollout.h5", "r") as f:
         assert float(f["00000"].attrs["dt"]) == 0.05
     assert not part_path(tmp_path / "rollout.h5").exists()
+    simulate(_compose("experiment=debug", "steps=4", f"out_dir={tmp_path}"))  # complete again
+    assert not (tmp_path / "previous").exists()
 
 
 def test_a_failing_preview_costs_only_the_figure(tmp_path, monkeypatch, caplog):
