@@ -14,7 +14,7 @@ pushed further (~6.3 m/s^2 per l0, so an e-folding time of ~0.1 s at l0 = 0.05 m
 ``pressure_gradient: corrected`` removes that term for the part of the pressure a linear field explains and
 slows the growth ~5x, a smaller ``re_laplacian`` further. The dt 1 ms rows show the authors' per-step density
 weight making the column noisier as dt falls, and ``source_density_reference_dt`` undoing that; what is left
-is fed mostly by the density term itself, which ``solver=mps_corrected`` slows (see the README).
+is fed mostly by the density term itself, which ``solver=mps_corrected`` slows (see docs/validation.md).
 """
 
 from __future__ import annotations
