@@ -20,8 +20,8 @@ from lagfluid.physics.stages import (
     SolverSettings,
     StageTimer,
     StepContext,
-    initial_constants,
-    lattice_constants,
+    neighbor_list,
+    scene_constants,
 )
 from lagfluid.state import ParticleState
 
@@ -30,16 +30,12 @@ __all__ = ["exact_context", "exact_ppe", "mps_constants", "mps_neighbor_list", "
 
 def mps_constants(state: ParticleState, settings: SolverSettings) -> MPSConstants:
     """``n0``, ``n0_lap``, ``lambda`` as the MPS solver takes them (``settings.n0_from``) for this scene."""
-    if settings.n0_from == "lattice":
-        return lattice_constants(state.params.l0, settings, state.params.dim)
-    return initial_constants(state, settings)
+    return scene_constants(state, settings)
 
 
 def mps_neighbor_list(state: ParticleState, settings: SolverSettings) -> VerletNeighborList:
     """A Verlet list with the MPS solver's cutoff, skin, backend and wall hops (so the same wall targets)."""
-    cutoff = exact_cutoff(settings, state.params) * state.params.l0
-    skin = settings.neighbor_skin_fraction * cutoff
-    return VerletNeighborList(cutoff, skin, settings.neighbor_backend, settings.wall_hops)
+    return neighbor_list(settings, exact_cutoff(settings, state.params) * state.params.l0)
 
 
 def exact_context(

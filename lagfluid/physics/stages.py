@@ -217,6 +217,20 @@ def initial_constants(state: ParticleState, settings: SolverSettings) -> MPSCons
     return MPSConstants(n0=n0, n0_lap=float(n0_lap), lam=float(lam))
 
 
+def scene_constants(state: ParticleState, settings: SolverSettings) -> MPSConstants:
+    """``n0``, ``n0_lap``, ``lambda`` per ``settings.n0_from``: the lattice's or the initial fluid's."""
+    if settings.n0_from == "lattice":
+        return lattice_constants(state.params.l0, settings, state.params.dim)
+    return initial_constants(state, settings)
+
+
+def neighbor_list(settings: SolverSettings, cutoff: float) -> VerletNeighborList:
+    """A fresh Verlet list at ``cutoff`` (m) with the settings' skin fraction, backend and wall hops."""
+    return VerletNeighborList(
+        cutoff, settings.neighbor_skin_fraction * cutoff, settings.neighbor_backend, settings.wall_hops
+    )
+
+
 class StageTimer:
     """Wall-clock seconds per named stage of the last step (synchronising CUDA for honest numbers)."""
 
@@ -482,17 +496,8 @@ class SplitStepSimulator:
         ``history`` (earlier states) is accepted as every simulator's is and not needed: the scheme is
         one-step.
         """
-        if self.settings.n0_from == "lattice":
-            self.constants = lattice_constants(state.params.l0, self.settings, state.params.dim)
-        else:
-            self.constants = initial_constants(state, self.settings)
-        cutoff = self.cutoff(state.params) * state.params.l0
-        self.neighbors = VerletNeighborList(
-            cutoff,
-            self.settings.neighbor_skin_fraction * cutoff,
-            self.settings.neighbor_backend,
-            self.settings.wall_hops,
-        )
+        self.constants = scene_constants(state, self.settings)
+        self.neighbors = neighbor_list(self.settings, self.cutoff(state.params) * state.params.l0)
 
     def cutoff(self, params: SceneParams) -> float:
         """Largest radius (in l0) the configured stages use for this scene: the neighbour list's cutoff.
