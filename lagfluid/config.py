@@ -22,6 +22,7 @@ import lagfluid
 from lagfluid.errors import ConfigError, RolloutError, SceneError
 from lagfluid.models.simulator import Simulator, check_simulator
 from lagfluid.registry import check_scene_name, get_simulator_factory
+from lagfluid.rollout import Guard
 from lagfluid.scenes import build_scene, trajectory_history, trajectory_params
 from lagfluid.state import ParticleState, SceneParams, parse_dtype
 
@@ -157,6 +158,14 @@ def at_simulator_time_step(state: ParticleState, simulator: Simulator, cfg: Dict
         step=state.step,
         bounds=state.bounds,
         check=False,
+    )
+
+
+def run_guard(cfg: DictConfig, simulator: Simulator) -> Guard:
+    """The rollout guard of a run: ``solver.guard``, with the Courant limit the simulator states, if any."""
+    limit = simulator.max_courant
+    return Guard(
+        float(cfg.solver.guard.max_courant if limit is None else limit), int(cfg.solver.guard.check_every)
     )
 
 

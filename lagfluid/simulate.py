@@ -33,13 +33,14 @@ from lagfluid.config import (
     build_simulator,
     initial_history,
     run_attributes,
+    run_guard,
 )
 from lagfluid.data.store import TrajectoryWriter
 from lagfluid.errors import RolloutError
 from lagfluid.metrics import field_metrics, summarize
 from lagfluid.outputs import begin, part_path, publish
 from lagfluid.physics.stages import SolverSettings, lattice_constants
-from lagfluid.rollout import Guard, rollout
+from lagfluid.rollout import rollout
 from lagfluid.state import ParticleState, ParticleType
 
 log = logging.getLogger(__name__)
@@ -138,7 +139,7 @@ def simulate(cfg: DictConfig) -> dict[str, Any]:
     state = at_simulator_time_step(state, simulator, cfg)
     history = initial_history(cfg, simulator)
     settings = SolverSettings.from_config(cfg.solver)
-    guard = Guard(float(cfg.solver.guard.max_courant), int(cfg.solver.guard.check_every))
+    guard = run_guard(cfg, simulator)
     simulator.reset(state, history)  # per-scene set-up can fail too (a plugin's checks, the history)
 
     out_dir = Path(cfg.out_dir)

@@ -30,10 +30,10 @@ from benchmarks.tables.simulators import (
     all_simulators,
     simulator,
 )
-from lagfluid.config import at_simulator_time_step, build_initial_state, build_simulator
+from lagfluid.config import at_simulator_time_step, build_initial_state, build_simulator, run_guard
 from lagfluid.errors import ConfigError
 from lagfluid.evaluate import evaluate
-from lagfluid.rollout import Guard, rollout
+from lagfluid.rollout import rollout
 
 log = logging.getLogger("benchmarks.tables")
 
@@ -197,7 +197,7 @@ class Bench:
             torch.manual_seed(int(cfg.seed))
             sim = build_simulator(cfg)
             state = at_simulator_time_step(build_initial_state(cfg), sim, cfg)
-            guard = Guard(float(cfg.solver.guard.max_courant), int(cfg.solver.guard.check_every))
+            guard = run_guard(cfg, sim)
             state, _ = rollout(sim, state, p.timing_warmup, guard=guard)
             state, record = rollout(sim, state, int(cfg.steps), guard=guard, reset=False)
             steps = record["step_seconds"]

@@ -20,7 +20,8 @@ dataset                      one item (N particles: Nf fluid, then boundary; gra
                              ``y`` v** - v* (Nf, 3); ``restitution`` (1,)
 :class:`TrajectoryWindows`   GNS-style windows of the trajectory: ``pos`` frame t (N, 3), ``ptype``,
                              ``history`` frames t-H .. t-1 (Nf, H, 3), ``y`` frame t+1 (Nf, 3);
-                             ``frame_dt`` (1,) = dt * sample_every
+                             ``frame_dt`` (1,) = dt * sample_every; ``bounds`` (1, 2, 3) the
+                             domain box (m), when the scene has a tank
 ============================ ==============================================================================
 
 All items also carry ``dt``, ``l0`` (1,) and ``scene`` (1,) (scene index); scene samples carry
@@ -379,11 +380,16 @@ class TrajectoryWindows(_SceneDataset):
         b_pos, b_type = self._near_boundary(file, window[-2])
         a = self.infos[file].attrs
         every = int(a["sample_every"])
+        bounds = a.get("bounds")
+        extra = {}
+        if isinstance(bounds, np.ndarray) and bounds.shape == (2, 3):  # a scene without a tank has none
+            extra["bounds"] = torch.from_numpy(bounds.astype(np.float32)).unsqueeze(0)
         return Data(
             **_with_boundary(window[-2], None, b_pos, b_type),
             history=torch.from_numpy(np.ascontiguousarray(window[:-2].transpose(1, 0, 2))),
             y=torch.from_numpy(window[-1]),
             frame_dt=torch.tensor([float(a["dt"]) * every], dtype=torch.float32),
             step=torch.tensor([t * every]),
+            **extra,
             **self._scene_fields(file),
         )

@@ -16,7 +16,7 @@ from typing import Any
 
 from omegaconf import DictConfig
 
-from lagfluid.config import run_attributes
+from lagfluid.config import run_attributes, run_guard
 from lagfluid.data.store import TrajectoryWriter
 from lagfluid.errors import RolloutError
 from lagfluid.metrics import normalized_mae
@@ -25,7 +25,7 @@ from lagfluid.neighbor_list import VerletNeighborList
 from lagfluid.physics.mps import ExactAdvection
 from lagfluid.physics.reference import exact_context, mps_constants, mps_neighbor_list, ppe_relative_residual
 from lagfluid.physics.stages import MPSConstants, SolverSettings, SplitStepFields
-from lagfluid.rollout import Guard, rollout
+from lagfluid.rollout import rollout
 from lagfluid.simulate import timing_summary
 from lagfluid.state import ParticleState
 
@@ -86,7 +86,7 @@ def run_model(
         recorded intermediates).
     """
     settings = SolverSettings.from_config(cfg.solver)
-    guard = Guard(float(cfg.solver.guard.max_courant), int(cfg.solver.guard.check_every))
+    guard = run_guard(cfg, simulator)
     steps, write_every = int(cfg.steps), int(cfg.write_every)
     nf = state.n_fluid
     writer = TrajectoryWriter(

@@ -24,6 +24,9 @@ class Simulator(Protocol):
             that), or None to step by the scene's ``state.params.dt``. The rollout tasks run the scene at
             this ``dt`` and record it in every output.
         history_length: how many earlier states :meth:`reset` wants (0 for one-step schemes; GNS: 5).
+        max_courant: the largest ``max|v| dt / l0`` the simulator is valid to, which the rollout guard
+            enforces; None: the run's ``solver.guard.max_courant`` (the MPS solver's limit). A learned model
+            stepping at a coarser ``dt`` than the solver's states its own (GNS's training frames reach 0.8).
         parameters: trainable parameters (0 for MPS); reported beside every timing.
         last_timings: seconds per named stage of the last :meth:`step` (e.g. ``neighbors``, ``advection``,
             ``pressure_solve``; an end-to-end model may report just ``network``).
@@ -36,6 +39,7 @@ class Simulator(Protocol):
     name: str
     dt: float | None
     history_length: int
+    max_courant: float | None
 
     @property
     def parameters(self) -> int:
@@ -75,7 +79,16 @@ class Simulator(Protocol):
         ...
 
 
-_REQUIRED = ("name", "dt", "history_length", "parameters", "last_timings", "last_info", "last_fields")
+_REQUIRED = (
+    "name",
+    "dt",
+    "history_length",
+    "max_courant",
+    "parameters",
+    "last_timings",
+    "last_info",
+    "last_fields",
+)
 
 
 def check_simulator(simulator: object, origin: str) -> Simulator:
@@ -86,7 +99,7 @@ def check_simulator(simulator: object, origin: str) -> Simulator:
         origin: where it came from (the model name), for the message.
 
     Raises:
-        ConfigError: a missing attribute or method, or a bad ``dt``/``history_length``.
+        ConfigError: a missing attribute or method, or a bad ``dt``/``history_length``/``max_courant``.
     """
     missing = [a for a in (*_REQUIRED, "reset", "step", "attributes") if not hasattr(simulator, a)]
     if missing:
@@ -97,6 +110,11 @@ def check_simulator(simulator: object, origin: str) -> Simulator:
     dt, history = simulator.dt, simulator.history_length
     if dt is not None and not (isinstance(dt, (int, float)) and not isinstance(dt, bool) and dt > 0):
         raise ConfigError(f"model '{origin}': dt must be a time step > 0 (s) or None, got {dt!r}")
+    limit = simulator.max_courant
+    if limit is not None and not (
+        isinstance(limit, (int, float)) and not isinstance(limit, bool) and limit > 0
+    ):
+        raise ConfigError(f"model '{origin}': max_courant must be a number > 0 or None, got {limit!r}")
     if not (isinstance(history, int) and history >= 0):
         raise ConfigError(f"model '{origin}': history_length must be an integer >= 0, got {history!r}")
     return simulator  # type: ignore[return-value]

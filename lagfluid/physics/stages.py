@@ -464,6 +464,7 @@ class SplitStepSimulator:
 
     dt: float | None = None
     history_length: int = 0
+    max_courant: float | None = None  # the run's solver.guard.max_courant
 
     def __init__(
         self,

@@ -123,6 +123,7 @@ class TinyMLPSimulator:
 
     name = NAME
     history_length = 0  # velocities are in the state
+    max_courant = None  # the run's solver.guard
     last_fields = None  # no intermediates to declare
 
     def __init__(self, net: TinyMLPNet) -> None:

@@ -1,0 +1,1 @@
+"""Hydra config groups of the GNS plugin (entry point lagfluid.configs): model/, train/, experiment/."""

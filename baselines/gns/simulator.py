@@ -1,0 +1,220 @@
+"""``model=gns``: the GNS network as a :class:`~lagfluid.models.simulator.Simulator`.
+
+The model steps at the spacing of its training frames (its own ``dt``, stored in the weights) by
+semi-implicit Euler with the predicted acceleration of the fluid, ``v' = v + a dt``, ``x' = x + v' dt``
+(:func:`lagfluid.integrate.semi_implicit_euler`), keeping an explicit velocity state (paper A.5); the
+network sees the last ``H`` velocities, ``(x_t - x_{t-1}) / dt`` of its frames, as in training. Boundary
+particles never move.
+
+**Start.** :meth:`GNSSimulator.reset` takes the ``H`` earlier frames from ``history`` (a trajectory started
+at frame t: ``scene=trajectory``), or, for a scene built from scratch, warm-starts as the paper (A.5): the
+first ``H`` frames are MPS's (``solver_dt`` steps of the ground-truth solver per frame, ``cfg.solver``),
+returned by the first ``H`` calls of :meth:`GNSSimulator.step` and timed as ``mps_warm_start``.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from lagfluid.errors import RolloutError
+from lagfluid.integrate import semi_implicit_euler
+from lagfluid.models.checkpoint import read_checkpoint
+from lagfluid.models.mps_simulator import build_mps
+from lagfluid.models.simulator import Simulator
+from lagfluid.state import ParticleState
+
+from .graph import build_graph, graph_inputs
+from .network import GNSNet
+from .trainable import NAME
+
+SHIPPED = Path(__file__).resolve().parent / "weights"
+"""The shipped weights (``gns.pt``) and their model card."""
+
+
+class GNSSimulator:
+    """GNS rollouts (module doc).
+
+    Args:
+        net: a trained :class:`GNSNet` (statistics and ``frame_dt`` set), on the run's device and dtype.
+        warm_start: the MPS simulator of the warm start (None: a rollout needs ``history``).
+        weights: where the weights came from (stored with every rollout).
+    """
+
+    name = NAME
+    last_fields = None  # no intermediates to declare
+    # One particle spacing per step, under half the connectivity radius: the graph still sees what the step
+    # runs into. The training frames (data=cpu, 8 ms apart) reach 0.8; MPS's own limit, 0.5, is for its 2 ms.
+    max_courant = 1.0
+
+    def __init__(self, net: GNSNet, warm_start: Simulator | None, weights: str) -> None:
+        self.net = net.eval()
+        self.history_length = net.history
+        self.dt = round(float(net.frame_dt), 9)  # frames are whole ns apart; the buffer may be float32
+        self.solver_dt = round(float(net.solver_dt), 9)
+        if not self.dt > 0:
+            raise RolloutError("the GNS weights hold no frame spacing (frame_dt); were they trained?")
+        self.warm_start = warm_start
+        self.weights = weights
+        self.last_info: dict[str, float] = {}
+        self._timings: dict[str, float] = {}
+        self._velocities: torch.Tensor | None = None  # (Nf, H, 3) the last H velocities, oldest first
+        self._warm_frames = 0
+        self._next_step: int | None = None
+
+    @property
+    def parameters(self) -> int:
+        """Trainable parameters of the network."""
+        return sum(p.numel() for p in self.net.parameters() if p.requires_grad)
+
+    @property
+    def last_timings(self) -> dict[str, float]:
+        """Seconds of the last step: ``neighbors`` and ``network`` (``mps_warm_start`` in the warm start)."""
+        return dict(self._timings)
+
+    def reset(self, state: ParticleState, history: Sequence[ParticleState] = ()) -> None:
+        """Take the velocity history from ``history`` (``H`` frames) or plan the MPS warm start (module doc).
+
+        Raises:
+            RolloutError: too short a history with no warm start, or a history of other particles.
+        """
+        nf, h = state.n_fluid, self.history_length
+        self._next_step = state.step
+        if len(history) >= h:
+            frames = [s.pos[:nf] for s in history[-h:]] + [state.pos[:nf]]
+            for s in history[-h:]:
+                if s.n_fluid != nf:
+                    raise RolloutError(f"GNS history frame has {s.n_fluid} fluid particles, the start {nf}")
+            stacked = torch.stack(frames, dim=1)
+            self._velocities = (stacked[:, 1:] - stacked[:, :-1]) / self.dt
+            self._warm_frames = 0
+            return
+        if self.warm_start is None:
+            raise RolloutError(f"GNS needs {h} earlier frames (a trajectory's history) or an MPS warm start")
+        substeps = round(self.dt / self.solver_dt) if self.solver_dt > 0 else 0
+        if substeps < 1 or abs(substeps * self.solver_dt - self.dt) > 1e-9:
+            raise RolloutError(
+                f"GNS's frame spacing {self.dt} s is not a whole number of MPS steps of {self.solver_dt} s"
+            )
+        self._substeps = substeps
+        self.warm_start.reset(self._mps_state(state))
+        self._velocities = torch.zeros(nf, h, 3, dtype=state.dtype, device=state.device)
+        self._warm_frames = h
+
+    def _mps_state(self, state: ParticleState) -> ParticleState:
+        """``state`` at the MPS step of the warm start."""
+        return ParticleState(
+            pos=state.pos,
+            vel=state.vel,
+            ptype=state.ptype,
+            params=state.params.with_overrides(dt=self.solver_dt),
+            pressure=state.pressure,
+            time=state.time,
+            step=state.step,
+            bounds=state.bounds,
+            check=False,
+        )
+
+    @torch.no_grad()
+    def step(self, state: ParticleState, *, record: bool = False) -> ParticleState:
+        """The state one frame later (an MPS frame during the warm start)."""
+        if self._velocities is None or state.step != self._next_step:
+            raise RolloutError(
+                f"GNS keeps the velocity history of its own rollout: step {state.step} does not follow the "
+                "last state it returned; call reset(state, history) first"
+            )
+        nf, dt = state.n_fluid, state.params.dt
+        if abs(dt - self.dt) > 1e-9:
+            raise RolloutError(f"GNS steps by its training frame spacing {self.dt} s, the state has dt {dt}")
+        if self._warm_frames:
+            new = self._warm_step(state)
+        else:
+            start = time.perf_counter()
+            net = self.net
+            dtype = net.velocity.mean.dtype
+            pos = state.pos.to(dtype)
+            radius = net.radius * state.params.l0
+            graph = build_graph(pos, state.fluid_mask, radius)
+            searched = time.perf_counter()
+            bounds = None if state.bounds is None else state.bounds.to(dtype)
+            nodes, edges = graph_inputs(net, pos, self._velocities.to(dtype), graph, bounds, radius)
+            acc = net.acceleration.inverse(net(nodes, graph.edge_index, edges)[:nf]).to(state.dtype)
+            fluid_pos, fluid_vel = semi_implicit_euler(state.pos[:nf], self._velocities[:, -1], acc, dt)
+            new = self._advanced(state, fluid_pos, fluid_vel, dt)
+            end = time.perf_counter()
+            self._timings = {"neighbors": searched - start, "network": end - searched}
+            self.last_info = {"graph_edges": float(graph.edge_index.shape[1])}
+        self._velocities = torch.cat([self._velocities[:, 1:], new.vel[:nf].unsqueeze(1)], dim=1)
+        self._next_step = new.step
+        return new
+
+    def _warm_step(self, state: ParticleState) -> ParticleState:
+        """One frame of the MPS warm start; the frame's velocity is its finite difference (as in training)."""
+        start = time.perf_counter()
+        nf = state.n_fluid
+        mps = self._mps_state(state)
+        for _ in range(self._substeps):
+            mps = self.warm_start.step(mps)
+        self._warm_frames -= 1
+        vel = (mps.pos[:nf] - state.pos[:nf]) / state.params.dt
+        new = self._advanced(state, mps.pos[:nf], vel, state.params.dt, pressure=mps.pressure)
+        self._timings = {"mps_warm_start": time.perf_counter() - start}
+        self.last_info = {}
+        return new
+
+    @staticmethod
+    def _advanced(
+        state: ParticleState,
+        fluid_pos: torch.Tensor,
+        fluid_vel: torch.Tensor,
+        dt: float,
+        pressure: torch.Tensor | None = None,
+    ) -> ParticleState:
+        """``state`` one step of ``dt`` later with the fluid rows replaced (the boundary never moves)."""
+        nf = state.n_fluid
+        pos, vel = state.pos.clone(), state.vel.clone()
+        pos[:nf], vel[:nf] = fluid_pos, fluid_vel
+        return ParticleState(
+            pos=pos,
+            vel=vel,
+            ptype=state.ptype,
+            params=state.params,
+            pressure=torch.zeros_like(state.pressure) if pressure is None else pressure,
+            time=state.time + dt,
+            step=state.step + 1,
+            bounds=state.bounds,
+            check=False,
+        )
+
+    def attributes(self) -> dict[str, Any]:
+        """Where the weights came from, the frame spacing and the warm start."""
+        return {
+            "weights": self.weights,
+            "frame_dt": self.dt,
+            "warm_start_frames": self.history_length,
+            "warm_start_solver_dt": self.solver_dt,
+        }
+
+
+def load_gns(path: str | Path, device: str = "cpu", dtype: torch.dtype = torch.float32) -> GNSNet:
+    """The :class:`GNSNet` of a checkpoint ``path`` (``gns.pt``) on ``device`` in ``dtype``.
+
+    Raises:
+        CheckpointError: a missing or unreadable file, or the network of another model.
+    """
+    ckpt = read_checkpoint(path, kind=NAME, model=NAME)
+    net = GNSNet(**ckpt["options"])
+    net.load_state_dict(ckpt["state_dict"])
+    return net.to(device=torch.device(device), dtype=dtype)
+
+
+def build_simulator(cfg: Any) -> GNSSimulator:
+    """``model=gns``: the network of ``model.weights/gns.pt`` (null: the shipped ones), MPS warm start."""
+    folder = Path(str(cfg.model.weights)) if cfg.model.get("weights") else SHIPPED
+    dtype = getattr(torch, str(cfg.dtype))
+    net = load_gns(folder / f"{NAME}.pt", str(cfg.device), dtype)
+    return GNSSimulator(net, build_mps(cfg), str(folder / f"{NAME}.pt"))

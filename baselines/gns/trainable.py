@@ -1,0 +1,243 @@
+"""GNS's one trainable: one-step acceleration of the fluid on windows of the MPS trajectories.
+
+A training item (:class:`~lagfluid.data.datasets.TrajectoryWindows`) is a window of ``H + K + 1`` stored
+frames (``H`` the velocity history, ``K`` the longest pushforward unroll) and the frame after it. Per batch:
+
+1. **Pushforward** (LagrangeBench; Brandstetter et al. 2022), optional: with probability ``probs[k]`` the
+   model first rolls ``k`` steps forward without gradient from the frames ``k`` earlier, so the step that
+   learns starts from the model's own positions, as in a rollout.
+2. **Noise** (DeepMind): a random walk on the input positions of the fluid, ``noise_std`` (in ``l0``) at the
+   last input frame; the target frame is shifted by the last frame's noise, so the target acceleration
+   ``(x_{t+1} - 2 x_t + x_{t-1}) / dt^2`` (:func:`lagfluid.integrate.acceleration_from_positions`, the
+   inverse of the rollout's semi-implicit Euler) restores the true next velocity.
+3. **Loss**: MSE of the standardised acceleration of the fluid particles (boundary nodes carry none).
+
+Statistics (:meth:`GNSTrainable.fit_statistics`): mean and std per axis of the finite-difference velocities
+and accelerations of the training frames, std combined with the noise's, ``sqrt(std^2 + noise^2)``
+(DeepMind), stored in the network's buffers with the frame spacing (the model's time step).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import torch
+from omegaconf import OmegaConf
+from torch import Tensor, nn
+from torch_geometric.data import Batch, Data
+
+from lagfluid.data.datasets import TrajectoryWindows
+from lagfluid.errors import ConfigError, LagfluidError
+from lagfluid.integrate import acceleration_from_positions, semi_implicit_euler
+from lagfluid.state import ParticleType
+
+from .graph import build_graph, graph_inputs
+from .network import GNSNet
+
+NAME = "gns"
+
+
+def random_walk_noise(shape: tuple[int, int, int], std_last: float, generator: Any = None) -> Tensor:
+    """Random-walk noise (Nf, T, 3) on ``T`` positions whose last frame has std ``std_last`` (DeepMind).
+
+    Each of the ``T - 1`` velocities gets independent noise of std ``std_last / sqrt(T - 1)``; the positions
+    take its running sum, starting from 0 on the first frame.
+    """
+    nf, frames, dim = shape
+    if frames < 2 or std_last == 0:
+        return torch.zeros(shape)
+    steps = torch.randn(nf, frames - 1, dim, generator=generator) * (std_last / math.sqrt(frames - 1))
+    return torch.cat([torch.zeros(nf, 1, dim), steps.cumsum(dim=1)], dim=1)
+
+
+def _scalar(values: Tensor, name: str) -> float:
+    """The one value of a per-sample field (a batch must not mix frame spacings or spacings l0)."""
+    unique = values.unique()
+    if unique.numel() != 1:
+        raise LagfluidError(f"a GNS batch mixes {name} values {unique.tolist()}; train on one dataset")
+    return float(unique[0])
+
+
+def _bounds(data: Data) -> Tensor | None:
+    """Per-particle (P, 2, 3) domain bounds of a batch, (2, 3) of one item, or None."""
+    bounds = getattr(data, "bounds", None)
+    if bounds is None:
+        return None
+    return bounds[data.batch] if isinstance(data, Batch) else bounds[0]
+
+
+def step_acceleration(
+    net: GNSNet,
+    pos: Tensor,
+    fluid: Tensor,
+    frames: Tensor,
+    dt: float,
+    l0: float,
+    bounds: Tensor | None,
+    batch: Tensor | None = None,
+) -> Tensor:
+    """Standardised acceleration (Nf, 3) of the fluid from its last ``H + 1`` frames.
+
+    Args:
+        net: the network.
+        pos: (P, 3) positions of every particle (fluid rows hold the last frame).
+        fluid: (P,) bool.
+        frames: (Nf, H + 1, 3) the fluid's positions, oldest first (the last equals ``pos[fluid]``).
+        dt: frame spacing (s).
+        l0: particle spacing (m).
+        bounds: as :func:`baselines.gns.graph.graph_inputs`.
+        batch: optional (P,) sample id.
+    """
+    radius = net.radius * l0
+    graph = build_graph(pos, fluid, radius, batch)
+    velocities = (frames[:, 1:] - frames[:, :-1]) / dt
+    nodes, edges = graph_inputs(net, pos, velocities, graph, bounds, radius)
+    return net(nodes, graph.edge_index, edges)[: graph.n_fluid]
+
+
+class GNSTrainable:
+    """:class:`~lagfluid.models.trainable.Trainable` of ``model=gns`` (module doc).
+
+    Reads ``cfg.model.gns`` (network options) and ``cfg.train``: ``noise_std`` (l0, random-walk noise at the
+    last input frame) and ``pushforward`` (``unrolls`` list, ``probs`` weights, ``start`` the batch after
+    which unrolls are drawn).
+    """
+
+    name = NAME
+    model = NAME
+    loss = None  # train.loss.gns (mse)
+
+    def __init__(self, cfg: Any) -> None:
+        self.options = OmegaConf.to_container(cfg.model[NAME], resolve=True)
+        tcfg = cfg.train
+        self.noise_std = float(tcfg.get("noise_std", 0.0))
+        if not (math.isfinite(self.noise_std) and self.noise_std >= 0):
+            raise ConfigError(f"train.noise_std must be >= 0 (in l0), got {tcfg.get('noise_std')!r}")
+        push = tcfg.get("pushforward") or {}
+        self.unrolls = [int(u) for u in push.get("unrolls", [0])]
+        probs = [float(p) for p in push.get("probs", [1.0])]
+        if len(probs) != len(self.unrolls) or min(probs) < 0 or sum(probs) <= 0 or min(self.unrolls) < 0:
+            raise ConfigError(
+                f"train.pushforward: unrolls {self.unrolls} and probs {probs} must be the same length, "
+                "unrolls >= 0, probs >= 0 with a positive sum"
+            )
+        self.probs = torch.tensor(probs) / sum(probs)
+        self.push_start = int(push.get("start", 0))
+        self.history = int(self.options.get("history", 5))
+
+    # ------------------------------------------------------------------------ Trainable
+    def datasets(self, data_dir: Path) -> tuple[Any, Any]:
+        """Windows of ``H + K`` earlier frames from the train and valid splits."""
+        frames = self.history + max(self.unrolls)
+        return (
+            TrajectoryWindows(data_dir, "train", history=frames),
+            TrajectoryWindows(data_dir, "valid", history=frames),
+        )
+
+    def build_network(self) -> nn.Module:
+        """A fresh :class:`GNSNet` from the options."""
+        return GNSNet(**self.options)
+
+    def fit_statistics(self, net: nn.Module, items: Sequence[Data]) -> dict[str, Any]:
+        """Velocity and acceleration statistics (module doc), the frame spacing and the solver's step."""
+        dt = _scalar(torch.cat([item.frame_dt for item in items]), "frame_dt")
+        l0 = _scalar(torch.cat([item.l0 for item in items]), "l0")
+        vel, acc = [], []
+        for item in items:
+            frames = torch.cat([item.history, item.y.unsqueeze(1)], dim=1).double()
+            v = (frames[:, 1:] - frames[:, :-1]) / dt
+            vel.append(v.reshape(-1, 3))
+            acc.append(((v[:, 1:] - v[:, :-1]) / dt).reshape(-1, 3))
+        vel_all, acc_all = torch.cat(vel), torch.cat(acc)
+        noise = self.noise_std * l0
+        vel_std = (vel_all.var(dim=0) + (noise / dt) ** 2).sqrt()
+        acc_std = (acc_all.var(dim=0) + (noise / dt**2) ** 2).sqrt()
+        net.velocity.set(vel_all.mean(dim=0), vel_std)
+        net.acceleration.set(acc_all.mean(dim=0), acc_std)
+        net.frame_dt.fill_(dt)
+        net.solver_dt.fill_(_scalar(torch.cat([item.dt for item in items]), "dt"))
+        return {
+            "frame_dt": dt,
+            "solver_dt": float(net.solver_dt),
+            "l0": l0,
+            "noise_std_m": noise,
+            "velocity_mean": vel_all.mean(dim=0).tolist(),
+            "velocity_std": vel_std.tolist(),
+            "acceleration_mean": acc_all.mean(dim=0).tolist(),
+            "acceleration_std": acc_std.tolist(),
+        }
+
+    def predict(self, net: nn.Module, batch: Batch) -> tuple[Tensor, Tensor]:
+        """Standardised predicted and target accelerations of the fluid, (Nf, 3) each."""
+        fluid = batch.ptype == ParticleType.FLUID
+        dt = _scalar(batch.frame_dt, "frame_dt")
+        l0 = _scalar(batch.l0, "l0")
+        sample = batch.batch if isinstance(batch, Batch) else None
+        bounds = _bounds(batch)
+        frames = torch.cat([batch.history, batch.pos[fluid].unsqueeze(1)], dim=1)  # (Nf, H + K + 1, 3)
+        window = frames[:, -(self.history + 1) :]
+        pos = batch.pos
+        training = net.training
+        if training:
+            net.trained_batches += 1
+            unroll = self._draw_unroll(int(net.trained_batches))
+            if unroll:
+                pos, window = self._pushforward(net, batch, fluid, frames, unroll, dt, l0, bounds, sample)
+        target_next = batch.y
+        if training and self.noise_std > 0:
+            noise = random_walk_noise(tuple(window.shape), self.noise_std * l0).to(window)
+            window = window + noise
+            target_next = target_next + noise[:, -1]
+            pos = pos.clone()
+            pos[fluid] = window[:, -1]
+        target = acceleration_from_positions(window[:, -2], window[:, -1], target_next, dt)
+        prediction = step_acceleration(net, pos, fluid, window, dt, l0, bounds, sample)
+        return prediction, net.acceleration(target)
+
+    def identity(self) -> dict[str, Any]:
+        """Noise and pushforward settings (they change the trained weights)."""
+        return {
+            "noise_std": self.noise_std,
+            "pushforward": {"unrolls": self.unrolls, "probs": self.probs.tolist(), "start": self.push_start},
+        }
+
+    # ------------------------------------------------------------------------ helpers
+    def _draw_unroll(self, batches: int) -> int:
+        """Unroll steps of training batch ``batches``: 0 until ``pushforward.start``, then drawn."""
+        if batches <= self.push_start or self.unrolls == [0]:
+            return 0
+        return self.unrolls[int(torch.multinomial(self.probs, 1))]
+
+    @torch.no_grad()
+    def _pushforward(
+        self,
+        net: GNSNet,
+        batch: Batch,
+        fluid: Tensor,
+        frames: Tensor,
+        unroll: int,
+        dt: float,
+        l0: float,
+        bounds: Tensor | None,
+        sample: Tensor | None,
+    ) -> tuple[Tensor, Tensor]:
+        """Roll ``unroll`` steps from that many frames earlier; the positions and the last H + 1 frames."""
+        end = frames.shape[1] - unroll
+        window = frames[:, end - self.history - 1 : end]
+        pos = batch.pos.clone()
+        for _ in range(unroll):
+            pos[fluid] = window[:, -1]
+            acc = net.acceleration.inverse(step_acceleration(net, pos, fluid, window, dt, l0, bounds, sample))
+            vel = (window[:, -1] - window[:, -2]) / dt
+            nxt, _ = semi_implicit_euler(window[:, -1], vel, acc, dt)
+            window = torch.cat([window[:, 1:], nxt.unsqueeze(1)], dim=1)
+        pos[fluid] = window[:, -1]
+        return pos, window
+
+
+def build_trainables(cfg: Any) -> dict[str, GNSTrainable]:
+    """``model=gns``'s trainables by name: one, the whole network."""
+    return {NAME: GNSTrainable(cfg)}
