@@ -20,7 +20,9 @@ from pathlib import Path
 from typing import Any
 
 import torch
+from omegaconf import OmegaConf
 
+from lagfluid.config import scene_params
 from lagfluid.errors import RolloutError
 from lagfluid.integrate import semi_implicit_euler
 from lagfluid.models.checkpoint import read_checkpoint
@@ -65,6 +67,7 @@ class GNSSimulator:
         self._velocities: torch.Tensor | None = None  # (Nf, H, 3) the last H velocities, oldest first
         self._warm_frames = 0
         self._next_step: int | None = None
+        self._mps: ParticleState | None = None  # the warm start's own state
 
     @property
     def parameters(self) -> int:
@@ -101,7 +104,8 @@ class GNSSimulator:
                 f"GNS's frame spacing {self.dt} s is not a whole number of MPS steps of {self.solver_dt} s"
             )
         self._substeps = substeps
-        self.warm_start.reset(self._mps_state(state))
+        self._mps = self._mps_state(state)
+        self.warm_start.reset(self._mps)
         self._velocities = torch.zeros(nf, h, 3, dtype=state.dtype, device=state.device)
         self._warm_frames = h
 
@@ -131,7 +135,7 @@ class GNSSimulator:
         if abs(dt - self.dt) > 1e-9:
             raise RolloutError(f"GNS steps by its training frame spacing {self.dt} s, the state has dt {dt}")
         if self._warm_frames:
-            new = self._warm_step(state)
+            new, velocity = self._warm_step(state)
         else:
             start = time.perf_counter()
             net = self.net
@@ -143,28 +147,32 @@ class GNSSimulator:
             bounds = None if state.bounds is None else state.bounds.to(dtype)
             nodes, edges = graph_inputs(net, pos, self._velocities.to(dtype), graph, bounds, radius)
             acc = net.acceleration.inverse(net(nodes, graph.edge_index, edges)[:nf]).to(state.dtype)
-            fluid_pos, fluid_vel = semi_implicit_euler(state.pos[:nf], self._velocities[:, -1], acc, dt)
-            new = self._advanced(state, fluid_pos, fluid_vel, dt)
+            fluid_pos, velocity = semi_implicit_euler(state.pos[:nf], self._velocities[:, -1], acc, dt)
+            new = self._advanced(state, fluid_pos, velocity, dt)
             end = time.perf_counter()
             self._timings = {"neighbors": searched - start, "network": end - searched}
             self.last_info = {"graph_edges": float(graph.edge_index.shape[1])}
-        self._velocities = torch.cat([self._velocities[:, 1:], new.vel[:nf].unsqueeze(1)], dim=1)
+        self._velocities = torch.cat([self._velocities[:, 1:], velocity.unsqueeze(1)], dim=1)
         self._next_step = new.step
         return new
 
-    def _warm_step(self, state: ParticleState) -> ParticleState:
-        """One frame of the MPS warm start; the frame's velocity is its finite difference (as in training)."""
+    def _warm_step(self, state: ParticleState) -> tuple[ParticleState, torch.Tensor]:
+        """One frame of the MPS warm start and its finite-difference velocity (Nf, 3), as in training.
+
+        The MPS solver continues from its own state (its velocities are not the frames' differences).
+        """
         start = time.perf_counter()
         nf = state.n_fluid
-        mps = self._mps_state(state)
+        mps = self._mps
         for _ in range(self._substeps):
             mps = self.warm_start.step(mps)
+        self._mps = mps
         self._warm_frames -= 1
-        vel = (mps.pos[:nf] - state.pos[:nf]) / state.params.dt
-        new = self._advanced(state, mps.pos[:nf], vel, state.params.dt, pressure=mps.pressure)
+        velocity = (mps.pos[:nf] - state.pos[:nf]) / state.params.dt
+        new = self._advanced(state, mps.pos[:nf], mps.vel[:nf], state.params.dt, pressure=mps.pressure)
         self._timings = {"mps_warm_start": time.perf_counter() - start}
         self.last_info = {}
-        return new
+        return new, velocity
 
     @staticmethod
     def _advanced(
@@ -212,9 +220,27 @@ def load_gns(path: str | Path, device: str = "cpu", dtype: torch.dtype = torch.f
     return net.to(device=torch.device(device), dtype=dtype)
 
 
+UNTRAINED = "untrained"
+"""``model.weights=untrained``: a freshly initialised network of ``model.gns``'s options, stepping at the
+scene's ``dt`` with no normalisation (to time a network size, e.g. the paper's; its rollouts mean nothing)."""
+
+
+def untrained_network(options: dict[str, Any], dt: float) -> GNSNet:
+    """A fresh :class:`GNSNet` of ``options`` stepping by ``dt`` (statistics at the identity)."""
+    torch.manual_seed(0)
+    net = GNSNet(**options)
+    net.frame_dt.fill_(dt)
+    net.solver_dt.fill_(dt)
+    return net
+
+
 def build_simulator(cfg: Any) -> GNSSimulator:
     """``model=gns``: the network of ``model.weights/gns.pt`` (null: the shipped ones), MPS warm start."""
-    folder = Path(str(cfg.model.weights)) if cfg.model.get("weights") else SHIPPED
     dtype = getattr(torch, str(cfg.dtype))
+    if str(cfg.model.get("weights")) == UNTRAINED:
+        options = OmegaConf.to_container(cfg.model[NAME], resolve=True)
+        net = untrained_network(options, scene_params(cfg).dt).to(torch.device(str(cfg.device)), dtype)
+        return GNSSimulator(net, build_mps(cfg), UNTRAINED)
+    folder = Path(str(cfg.model.weights)) if cfg.model.get("weights") else SHIPPED
     net = load_gns(folder / f"{NAME}.pt", str(cfg.device), dtype)
     return GNSSimulator(net, build_mps(cfg), str(folder / f"{NAME}.pt"))

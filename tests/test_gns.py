@@ -1,0 +1,358 @@
+"""GNS (baselines/gns): architecture, invariances, batching, the noise and target bookkeeping, the simulator's
+state handling, training and the plugin path (seconds)."""
+
+from importlib import metadata
+
+import h5py
+import numpy as np
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
+from torch_geometric.data import Batch, Data
+
+from baselines.gns.graph import bounds_features, build_graph
+from baselines.gns.network import GNSNet, InteractionNetwork
+from baselines.gns.simulator import SHIPPED, GNSSimulator, build_simulator
+from baselines.gns.trainable import GNSTrainable, random_walk_noise, step_acceleration
+from lagfluid.config import at_simulator_time_step, build_initial_state, initial_history, run_guard
+from lagfluid.errors import RolloutError
+from lagfluid.generate import generate
+from lagfluid.integrate import acceleration_from_positions, semi_implicit_euler
+from lagfluid.models.mps_simulator import build_mps
+from lagfluid.models.simulator import check_simulator
+from lagfluid.registry import available_simulators, trainable_models
+from lagfluid.rollout import rollout
+from lagfluid.run import CONF_DIR
+from lagfluid.state import ParticleState, ParticleType
+from lagfluid.train import train
+
+SMALL = {"latent": 16, "hidden": 16, "mlp_layers": 2, "blocks": 3, "history": 5, "radius": 2.1}
+L0 = 0.05
+
+
+def _compose(*overrides):
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        return compose(config_name="config", overrides=list(overrides))
+
+
+def _net(seed=0, dtype=torch.float64, **options):
+    """A small GNS with non-trivial statistics (so a wrong normalisation shows)."""
+    torch.manual_seed(seed)
+    net = GNSNet(**{**SMALL, **options}).to(dtype)
+    net.velocity.set([0.1, -0.2, 0.3], [0.5, 0.7, 0.9])
+    net.acceleration.set([1.0, 2.0, -9.0], [20.0, 30.0, 40.0])
+    net.frame_dt.fill_(0.008)
+    net.solver_dt.fill_(0.002)
+    return net.eval()
+
+
+def _scene(seed=0, nx=5, dtype=torch.float64):
+    """A jittered fluid block over a two-layer floor: pos (P, 3), fluid mask, frames (Nf, 6, 3), bounds."""
+    g = torch.Generator().manual_seed(seed)
+    idx = torch.stack(torch.meshgrid(*[torch.arange(n) for n in (nx, 4, 3)], indexing="ij"), -1).reshape(
+        -1, 3
+    )
+    fluid = (idx.to(dtype) + torch.tensor([1.0, 1.0, 1.0], dtype=dtype)) * L0
+    fluid = fluid + 0.1 * L0 * torch.randn(fluid.shape, generator=g, dtype=dtype)
+    fx = torch.stack(
+        torch.meshgrid(torch.arange(-1, nx + 3), torch.arange(-1, 7), indexing="ij"), -1
+    ).reshape(-1, 2)
+    floor = torch.cat([torch.cat([fx, torch.full((len(fx), 1), -k)], 1) for k in (0, 1)]).to(dtype) * L0
+    pos = torch.cat([fluid, floor])
+    is_fluid = torch.arange(len(pos)) < len(fluid)
+    steps = 0.004 * torch.randn(len(fluid), 5, 3, generator=g, dtype=dtype)
+    frames = torch.cat([fluid.unsqueeze(1) - steps.flip(1).cumsum(1).flip(1), fluid.unsqueeze(1)], dim=1)
+    bounds = torch.tensor([[0.0, 0.0, 0.0], [(nx + 2) * L0, 6 * L0, 2.0]], dtype=dtype)
+    return pos, is_fluid, frames, bounds
+
+
+def _acc(net, pos, fluid, frames, bounds, batch=None):
+    return step_acceleration(net, pos, fluid, frames, 0.008, L0, bounds, batch)
+
+
+# ------------------------------------------------------------------------------------------ architecture
+def test_paper_size_has_deepminds_parameter_count():
+    # 22 node inputs (5 x 3 velocities, 6 bounds, 1 type), 4 edge inputs, latent 128, 10 blocks of two
+    # 2 x 128 MLPs with LayerNorm, decoder without: DeepMind's configuration, ~1.59M (paper: 1,406,272).
+    lin = lambda i, o: i * o + o  # noqa: E731
+    mlp = lambda i, o, ln=True: lin(i, 128) + lin(128, 128) + lin(128, o) + (2 * o if ln else 0)  # noqa: E731
+    expected = mlp(22, 128) + mlp(4, 128) + 10 * (mlp(384, 128) + mlp(256, 128)) + mlp(128, 3, ln=False)
+    count = sum(p.numel() for p in GNSNet().parameters())
+    assert count == expected == 1_590_915
+    assert sum(p.numel() for p in GNSNet(type_embedding=16).parameters()) == count + 15 * 128 + 2 * 16
+
+
+def test_edge_update_applied_by_parts_is_the_concatenated_mlp():
+    torch.manual_seed(0)
+    block = InteractionNetwork(latent=8, hidden=12, mlp_layers=2).double()
+    x, e = torch.randn(6, 8, dtype=torch.float64), torch.randn(10, 8, dtype=torch.float64)
+    edge_index = torch.randint(0, 6, (2, 10))
+    by_parts = block.edge_update(e, edge_index, x)
+    full = block.edge_mlp(torch.cat([e, x[edge_index[1]], x[edge_index[0]]], dim=1))
+    torch.testing.assert_close(by_parts, full)
+    x_new, e_new = block(x, edge_index, e)
+    summed = torch.zeros(6, 8, dtype=torch.float64).index_add_(0, edge_index[1], full)
+    torch.testing.assert_close(x_new, x + block.node_mlp(torch.cat([x, summed], 1)))
+    torch.testing.assert_close(e_new, e + full)
+
+
+def test_updated_edge_latents_reach_the_next_block():
+    net = _net()
+    pos, fluid, frames, bounds = _scene()
+    seen = {}
+
+    def after_block0(module, args, out):
+        seen["out0"] = out[1]
+
+    def before_block1(module, args):
+        seen["in1"] = args[2]
+
+    net.processor[0].register_forward_hook(after_block0)
+    net.processor[1].register_forward_pre_hook(before_block1)
+    _acc(net, pos, fluid, frames, bounds)
+    assert torch.equal(seen["out0"], seen["in1"])
+
+
+def test_graph_has_every_neighbour_of_the_fluid_and_only_the_boundary_in_reach():
+    pos, fluid, _, _ = _scene()
+    radius = 2.1 * L0
+    g = build_graph(pos, fluid, radius)
+    d = torch.cdist(pos, pos)
+    expected = {
+        (j, i)
+        for i in torch.nonzero(fluid).flatten().tolist()
+        for j in range(len(pos))
+        if j != i and d[i, j] < radius
+    }
+    src, dst = g.nodes[g.edge_index[0]].tolist(), g.nodes[g.edge_index[1]].tolist()
+    assert set(zip(src, dst, strict=True)) == expected and len(src) == len(expected)
+    in_reach = {j for j, _ in expected} | set(torch.nonzero(fluid).flatten().tolist())
+    assert set(g.nodes.tolist()) == in_reach
+    assert bool(fluid[g.nodes[: g.n_fluid]].all()) and not bool(fluid[g.nodes[g.n_fluid :]].any())
+    assert len(in_reach) < len(pos)  # the floor's far corners are not modelled
+
+
+def test_bounds_features_are_clipped_distances_over_the_radius():
+    pos = torch.tensor([[0.05, 0.5, 0.95]])
+    f = bounds_features(pos, torch.tensor([[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]]), 0.1)
+    torch.testing.assert_close(f, torch.tensor([[0.5, 1.0, 1.0, 1.0, 1.0, 0.5]]))
+    assert torch.equal(bounds_features(pos, None, 0.1), torch.ones(1, 6))
+
+
+# ------------------------------------------------------------------------------------------ invariances
+def test_permutation_invariance():
+    net = _net()
+    pos, fluid, frames, bounds = _scene()
+    nf = int(fluid.sum())
+    perm_f = torch.randperm(nf, generator=torch.Generator().manual_seed(1))
+    perm_b = nf + torch.randperm(len(pos) - nf, generator=torch.Generator().manual_seed(2))
+    perm = torch.cat([perm_f, perm_b])
+    out = _acc(net, pos, fluid, frames, bounds)
+    out_perm = _acc(net, pos[perm], fluid[perm], frames[perm_f], bounds)
+    torch.testing.assert_close(out_perm, out[perm_f])
+
+
+def test_translation_invariance():
+    net = _net()
+    pos, fluid, frames, bounds = _scene()
+    shift = torch.tensor([1.3, -0.7, 2.1], dtype=torch.float64)
+    out = _acc(net, pos, fluid, frames, bounds)
+    torch.testing.assert_close(_acc(net, pos + shift, fluid, frames + shift, bounds + shift), out)
+
+
+def _item(seed, nx):
+    pos, fluid, frames, bounds = _scene(seed, nx, torch.float32)
+    nf = int(fluid.sum())
+    return Data(
+        pos=pos,
+        ptype=torch.where(fluid, int(ParticleType.FLUID), int(ParticleType.WALL)),
+        history=frames[:, :-1].contiguous(),
+        y=frames[:, -1] + 0.003 * torch.randn(nf, 3, generator=torch.Generator().manual_seed(seed)),
+        frame_dt=torch.tensor([0.008]),
+        dt=torch.tensor([0.002]),
+        l0=torch.tensor([L0]),
+        bounds=bounds.unsqueeze(0),
+    )
+
+
+def _trainable(**train):
+    cfg = OmegaConf.create({"model": {"gns": SMALL}, "train": train})
+    return GNSTrainable(cfg)
+
+
+def test_two_scenes_batched_equal_each_alone():
+    trainable = _trainable()
+    net = _net(dtype=torch.float32)
+    a, b = _item(0, 5), _item(1, 4)
+    b.pos, b.history, b.y = b.pos + 0.02, b.history + 0.02, b.y + 0.02  # overlapping in space
+    pred_ab, target_ab = trainable.predict(net, Batch.from_data_list([a, b]))
+    alone = [trainable.predict(net, Batch.from_data_list([item])) for item in (a, b)]
+    torch.testing.assert_close(pred_ab, torch.cat([p for p, _ in alone]), atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(target_ab, torch.cat([t for _, t in alone]))
+
+
+# ------------------------------------------------------------------------------------------ noise, targets
+def test_random_walk_noise_has_the_stated_std_at_the_last_frame():
+    torch.manual_seed(0)
+    noise = random_walk_noise((20000, 6, 3), 0.01)
+    assert torch.equal(noise[:, 0], torch.zeros(20000, 3))
+    assert abs(float(noise[:, -1].std()) - 0.01) < 3e-4
+    increments = noise[:, 1:] - noise[:, :-1]
+    assert abs(float(increments.std()) - 0.01 / 5**0.5) < 2e-4
+
+
+def test_noisy_inputs_and_corrected_target_give_the_true_next_velocity():
+    """The target shifted by the last frame's noise: the update recovers the true next velocity."""
+    torch.manual_seed(0)
+    frames = torch.cumsum(0.01 * torch.randn(50, 7, 3, dtype=torch.float64), dim=1)
+    x, y, dt = frames[:, :-1], frames[:, -1], 0.008
+    noise = random_walk_noise((50, 6, 3), 0.005).double()
+    noisy = x + noise
+    acc = acceleration_from_positions(noisy[:, -2], noisy[:, -1], y + noise[:, -1], dt)
+    pos, vel = semi_implicit_euler(noisy[:, -1], (noisy[:, -1] - noisy[:, -2]) / dt, acc, dt)
+    torch.testing.assert_close(vel, (y - x[:, -1]) / dt)
+    torch.testing.assert_close(pos, y + noise[:, -1])
+
+
+def test_training_noise_and_pushforward_are_only_in_training():
+    trainable = _trainable(noise_std=0.1, pushforward={"start": 0, "unrolls": [0, 2], "probs": [0, 1]})
+    net = _net(dtype=torch.float32)
+    item = _item(0, 5)
+    item.history = torch.cat([item.history[:, :1], item.history[:, :1], item.history], 1)  # H + K = 7 frames
+    batch = Batch.from_data_list([item])
+    clean = trainable.predict(net, batch)
+    torch.testing.assert_close(trainable.predict(net, batch), clean)  # eval: deterministic
+    net.train()
+    noisy = trainable.predict(net, batch)
+    assert int(net.trained_batches) == 1
+    assert not torch.allclose(noisy[1], clean[1])  # the target moved with the noise and the unroll
+
+
+def test_a_perfect_predictor_reproduces_the_trajectory(tiny_data):
+    """The simulator fed the exact accelerations of a stored trajectory rolls the trajectory out."""
+    scene = sorted((tiny_data / "scenes").glob("*.h5"))[0]
+    with h5py.File(scene, "r") as f:
+        truth = torch.from_numpy(f["00000/position"][()]).double()
+        frame_dt = float(f["00000"].attrs["dt"]) * int(f["00000"].attrs["sample_every"])
+
+    class Oracle(GNSNet):
+        def forward(self, nodes, edge_index, edges):
+            k = int(self.frame) + 1
+            acc = acceleration_from_positions(truth[k - 1], truth[k], truth[k + 1], frame_dt)
+            self.frame += 1
+            out = torch.zeros(nodes.shape[0], 3, dtype=nodes.dtype)
+            out[: acc.shape[0]] = self.acceleration(acc)
+            return out
+
+    net = Oracle(**SMALL).double()
+    net.acceleration.set([1.0, 2.0, -9.0], [20.0, 30.0, 40.0])
+    net.frame_dt.fill_(frame_dt)
+    net.solver_dt.fill_(0.002)
+    start = 5
+    net.frame = start - 1
+    cfg = _compose("scene=trajectory", f"scene.path={scene}", f"scene.frame={start}", "dtype=float64")
+    sim = GNSSimulator(net.eval(), None, "oracle")
+    state = at_simulator_time_step(build_initial_state(cfg), sim, cfg)
+    frames = []
+    steps = truth.shape[0] - 1 - start
+    rollout(
+        sim,
+        state,
+        steps,
+        history=initial_history(cfg, sim),
+        on_frame=lambda s: frames.append(s.pos[: s.n_fluid]),
+    )
+    assert len(frames) == steps + 1 == 8
+    for k, pos in enumerate(frames):
+        torch.testing.assert_close(pos, truth[start + k], atol=1e-6, rtol=0)
+
+
+# ------------------------------------------------------------------------------------------ simulator
+@pytest.fixture(scope="module")
+def tiny_data(tmp_path_factory):
+    out = tmp_path_factory.mktemp("gns_data")
+    generate(
+        _compose(
+            "task=generate",
+            "scene=random",
+            "data=tiny",
+            "data.steps=24",
+            f"data.out_dir={out}",
+            "progress=false",
+        )
+    )
+    return out
+
+
+def test_the_warm_start_is_mps_and_a_foreign_state_is_refused():
+    cfg = _compose("model=mps", "scene=dam_small")
+    state0 = build_initial_state(cfg)
+    state = ParticleState(
+        pos=state0.pos,
+        vel=state0.vel,
+        ptype=state0.ptype,
+        params=state0.params.with_overrides(dt=0.008),
+        bounds=state0.bounds,
+    )
+    sim = check_simulator(GNSSimulator(_net(dtype=torch.float32), build_mps(cfg), "test"), "gns")
+    sim.reset(state)
+    warm = state
+    for _ in range(5):
+        warm = sim.step(warm)
+        assert set(sim.last_timings) == {"mps_warm_start"}
+    mps = build_mps(cfg)
+    ref = state0
+    mps.reset(ref)
+    for _ in range(20):
+        ref = mps.step(ref)
+    assert torch.equal(warm.pos, ref.pos)
+    assert warm.time == pytest.approx(0.04) and warm.step == 5
+    after = sim.step(warm)
+    assert set(sim.last_timings) == {"neighbors", "network"}
+    assert torch.equal(after.pos[state.n_fluid :], state.pos[state.n_fluid :])  # the boundary never moves
+    with pytest.raises(RolloutError, match="does not follow"):
+        sim.step(warm)
+    with pytest.raises(RolloutError, match="earlier frames"):
+        GNSSimulator(_net(dtype=torch.float32), None, "test").reset(state)
+
+
+def test_tiny_training_lowers_the_loss(tiny_data, tmp_path):
+    cfg = _compose(
+        "task=train",
+        "model=gns",
+        "train=gns_cpu",
+        f"data.out_dir={tiny_data}",
+        f"out_dir={tmp_path}",
+        *[f"model.gns.{k}={v}" for k, v in SMALL.items()],
+        "train.iterations={gns: 40}",
+        "train.log_every=5",
+        "train.valid_every=5",
+        "train.lr_start=3e-3",
+        "train.pushforward.start=20",
+        "progress=false",
+        "threads=1",
+    )
+    train(cfg)
+    rows = np.genfromtxt(tmp_path / "gns_loss.csv", delimiter=",", names=True)
+    assert rows["valid_loss"][-1] < 0.7 * rows["valid_loss"][0]
+
+
+# ------------------------------------------------------------------------------------------ plugin path
+def test_the_plugin_is_found_by_entry_points_and_composes():
+    for group in ("lagfluid.simulators", "lagfluid.trainables", "lagfluid.configs"):
+        assert "gns" in {ep.name for ep in metadata.entry_points(group=group)}, group
+    assert "gns" in available_simulators() and "gns" in trainable_models()
+    cfg = _compose("model=gns", "train=gns_cpu")
+    assert cfg.model.name == "gns" and cfg.model.gns.latent == 48 and cfg.train.noise_std > 0
+    assert _compose("model=gns", "train=gns_paper").model.gns.latent == 128
+
+
+@pytest.mark.skipif(not (SHIPPED / "gns.pt").is_file(), reason="no shipped GNS weights")
+def test_the_shipped_weights_roll_out_finite_and_inside_the_tank():
+    cfg = _compose("model=gns", "scene=dam_small", "dt=0.008")
+    sim = build_simulator(cfg)
+    state = build_initial_state(cfg)
+    final, _ = rollout(sim, state, 20, guard=run_guard(cfg, sim))
+    assert bool(torch.isfinite(final.pos).all()) and final.fluid_outside_bounds().numel() == 0
+    assert sim.dt == 0.008 and sim.max_courant == 1.0
