@@ -41,7 +41,7 @@ from lagfluid.train import train
 RESULTS = Path(__file__).resolve().parent / "results"
 
 
-def _rollout_errors(overrides: list[str], scene: Path, frame: int, steps: int) -> dict[str, float]:
+def rollout_errors(overrides: list[str], scene: Path, frame: int, steps: int) -> dict[str, float]:
     """Roll GNS out from ``frame`` of ``scene`` and compare each frame with the file's."""
     cfg = compose_config([*overrides, "scene=trajectory", f"scene.path={scene}", f"scene.frame={frame}"])
     sim = build_simulator(cfg)
@@ -118,7 +118,7 @@ def main(argv: list[str] | None = None) -> None:
         valid_rms = float(np.sqrt(float(last["valid_loss"]) * np.mean(acc_std**2)))
         row = {"noise_std_l0": noise, "train_s": round(seconds), "valid_rms_acc_m_s2": valid_rms}
         for scene in scenes:
-            errs = _rollout_errors([*common, f"model.weights={out}"], scene, args.frame, args.steps)
+            errs = rollout_errors([*common, f"model.weights={out}"], scene, args.frame, args.steps)
             row.update({f"{scene.stem}_{k}": v for k, v in errs.items()})
         print(row, flush=True)
         rows.append(row)

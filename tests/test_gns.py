@@ -356,3 +356,13 @@ def test_the_shipped_weights_roll_out_finite_and_inside_the_tank():
     final, _ = rollout(sim, state, 20, guard=run_guard(cfg, sim))
     assert bool(torch.isfinite(final.pos).all()) and final.fluid_outside_bounds().numel() == 0
     assert sim.dt == 0.008 and sim.max_courant == 1.0
+
+
+def test_trajectory_windows_carry_the_domain_bounds(tiny_data):
+    from lagfluid.data.datasets import TrajectoryWindows
+
+    item = TrajectoryWindows(tiny_data, "train", history=5)[0]
+    scene = tiny_data / TrajectoryWindows(tiny_data, "train", history=5).metadata["splits"]["train"][0]
+    with h5py.File(scene, "r") as f:
+        expected = torch.from_numpy(f["00000"].attrs["bounds"]).float()
+    assert torch.equal(item.bounds, expected.unsqueeze(0))
