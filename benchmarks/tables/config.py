@@ -10,6 +10,7 @@ from hydra.core.global_hydra import GlobalHydra
 from omegaconf import DictConfig
 
 from lagfluid.errors import ConfigError
+from lagfluid.plugin_configs import group_options
 from lagfluid.run import CONF_DIR, _register_plugin_configs
 
 
@@ -21,10 +22,15 @@ def compose_config(overrides: Sequence[str]) -> DictConfig:
 
 
 def experiment_names() -> list[str]:
-    """Every option of Hydra's ``experiment`` group (``conf/experiment/`` files and registered nodes)."""
+    """Every option of Hydra's ``experiment`` group (``conf/experiment/``, registered nodes, plugins' files).
+
+    A plugin's config folder (``lagfluid.configs``) is on the search path when a row composes, but the
+    loader of the compose API does not list its files: they are added from the folders themselves.
+    """
     _register_plugin_configs()
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        return sorted(GlobalHydra.instance().config_loader().get_group_options("experiment"))
+        names = set(GlobalHydra.instance().config_loader().get_group_options("experiment"))
+    return sorted(names | set(group_options("experiment", CONF_DIR)))
 
 
 def row_file(name: str) -> str | None:
