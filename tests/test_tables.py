@@ -77,6 +77,16 @@ def test_steps_in_names_a_duration_that_is_not_whole_steps():
         steps_in(0.04, 0.003, "frame interval")
 
 
+def test_quick_profile_fits_every_time_step_it_runs():
+    """Durations and frame interval are whole steps of 2 ms (MPS, FGN), 4 ms (the test plugin), 8 ms (GNS's
+    training frames) and of the quick Fig. 5 and trade-off dts."""
+    dts = {0.002, 0.004, 0.008, *QUICK.fig5_dts, *QUICK.mps_dts}
+    for dt in dts:
+        for what in ("dam_duration", "frame_interval", "waterfall_duration"):
+            steps_in(getattr(QUICK, what), dt, what)
+    assert steps_in(QUICK.table4_duration, 0.002, "table4") == 20
+
+
 def test_hydra_value_round_trips_through_an_override():
     value = {"dt": None, "steps": 500, "scene": {"params": {"l0": 0.05}, "fluid_size": [10, 20, 20]}}
     cfg = compose_config([f"evaluate.reference={hydra_value(value)}"])
@@ -120,13 +130,17 @@ def runtime_plugin(monkeypatch):
 def test_the_built_in_simulators_come_from_their_row_files_in_the_papers_order():
     from benchmarks.tables.simulators import Simulator, all_simulators, simulator
 
-    assert all_simulators() == [
+    sims = all_simulators()
+    assert sims[:5] == [
         Simulator("mps", "MPS", "mps", "none"),
         Simulator("fgn", "FGN", "fgn", "fgn"),
         Simulator("hybrid_pressure", "hybrid: learned pressure", "hybrid", "fgn"),
         Simulator("hybrid_advection", "hybrid: learned advection", "hybrid", "fgn"),
         Simulator("fgn_original", "FGN, authors' weights", "fgn_original", "authors"),
     ]
+    assert all(
+        s.rows == (f"table2_{s.key}", f"table3_dam_{s.key}", f"table3_waterfall_{s.key}") for s in sims[:5]
+    )
     assert [s.key for s in all_simulators(["fgn_original", "mps"])] == ["mps", "fgn_original"]
     with pytest.raises(ConfigError, match=r"no simulator 'nope' in the tables; available: mps, fgn, "):
         simulator("nope")
@@ -140,17 +154,11 @@ def test_a_simulator_registered_at_runtime_with_rows_is_listed_with_its_label(ru
     runtime_plugin("toy_mlp", {**rows, "table2_toy_mlp": {"task": "simulate", "table": table}})
     runtime_plugin("toy_plain")  # no row files: run as model=toy_plain, after every simulator with rows
     keys = [s.key for s in all_simulators()]
-    assert keys == [
-        "mps",
-        "fgn",
-        "hybrid_pressure",
-        "toy_mlp",
-        "hybrid_advection",
-        "fgn_original",
-        "toy_plain",
-    ]
+    assert keys[:6] == ["mps", "fgn", "hybrid_pressure", "toy_mlp", "hybrid_advection", "fgn_original"]
+    assert keys[-1] == "toy_plain"
     assert simulator("toy_mlp") == Simulator("toy_mlp", "toy MLP", "toy_mlp", "none")
     assert simulator("toy_plain") == Simulator("toy_plain", "toy_plain", "toy_plain", "none")
+    assert simulator("toy_plain").appears_in("table3_dam_toy_plain")  # no row files: in every table
     assert compose_config(["experiment=table3_dam_toy_mlp"]).model.name == "toy_mlp"  # the row runs it
 
 
@@ -161,6 +169,35 @@ def test_a_bad_table_block_names_the_row_and_the_value(runtime_plugin):
     with pytest.raises(
         ConfigError, match=r"experiment=table2_toy_bad: table.weights 'shipped' is not one of"
     ):
+        all_simulators()
+
+
+def test_a_key_with_only_a_table2_row_is_timed_and_in_no_other_table(runtime_plugin, tmp_path):
+    from benchmarks.tables.simulators import simulator
+
+    table = {"label": "toy, timing only", "weights": "none", "timing_steps": 2, "note": "untrained."}
+    runtime_plugin("toy_timed", {"table2_toy_timed": {"task": "simulate", "table": table}})
+    sim = simulator("toy_timed")
+    assert sim.rows == ("table2_toy_timed",) and sim.timing_steps == 2 and sim.note == "untrained."
+    profile = replace(TINY, simulators=("mps", "toy_timed"), waterfall=("scene.scale=0.25",))
+    bench = Bench(profile, argparse.Namespace(weights=None, threads=1, runs_dir=str(tmp_path)))
+    asked: list[str] = []  # the rows the parts would run (none is run here)
+    bench.evaluate = lambda run, **_: asked.append(run.key) or run
+    bench.time_steps = lambda run: asked.append(run.key) or run
+    bench.own_dt = lambda sim: None
+    bench.table3_runs("dam"), bench.table3_runs("waterfall"), bench.table2_runs()
+    assert asked == ["table3/dam/mps", "table3/waterfall/mps", "table2/mps", "table2/toy_timed"]
+
+
+def test_table2_rows_time_fewer_steps_when_a_row_asks_and_never_a_start_up(runtime_plugin):
+    from benchmarks.tables.bench import timing_warmup
+    from benchmarks.tables.simulators import all_simulators
+
+    assert timing_warmup(QUICK, 0) == QUICK.timing_warmup  # a one-step scheme: the profile's warm-up
+    assert timing_warmup(QUICK, 5) == 6  # 5 start-up steps (a warm start by MPS), then its first own step
+    assert timing_warmup(replace(QUICK, timing_warmup=10), 5) == 10
+    runtime_plugin("toy_steps", {"table3_dam_toy_steps": {"table": {"timing_steps": 2}}})
+    with pytest.raises(ConfigError, match=r"table3_dam_toy_steps: table.timing_steps is for a Table 2 row"):
         all_simulators()
 
 

@@ -16,7 +16,8 @@ the model and the MPS reference from the same initial state, metrics per stored 
 comes from :mod:`lagfluid.metrics`.
 
 The simulators compared are the registered ones plus their row files (``table2_<key>``,
-``table3_<case>_<key>``, each with a ``table: {label, order, weights}`` block): adding a simulator is a
+``table3_<case>_<key>``, each with a ``table: {label, order, weights, note}`` block; a key appears in the
+tables it has row files for, so a key with only ``table2_<key>`` is a timing row): adding a simulator is a
 registry entry and its row files, nothing here (:mod:`benchmarks.tables.simulators`).
 
 Modules, one job each: :mod:`~benchmarks.tables.simulators` (which simulators, their labels),
@@ -32,7 +33,9 @@ Parts (``--only``):
   distance to MPS (mean/max, mm) on the dam collapse and the water fall, for every simulator; MPS
   is the "Ground truth" row (its own density error and divergence).
 * ``table2``: trainable parameters, median time per step, neighbour search and the rest ("inference") at
-  ~40k fluid particles (``scene=dam_large``), warm-up steps excluded, every simulator in this process.
+  ~40k fluid particles (``scene=dam_large``), every simulator in this process; warm-up steps excluded,
+  at least a simulator's ``history_length`` + 1 (its start-up, e.g. a warm start by MPS, is never timed);
+  a row file may time fewer steps (``table.timing_steps``: a network too slow at that size).
 * ``table4``: the advection net's normalised MAE (eq. 32) on held-out gravity and viscosity (paper: ten
   sequences, g in [1, 100] m/s^2, nu in [1e-4, 0.1] m^2/s) and the pressure net's PPE relative residual
   (eq. 31), mean +- standard deviation.

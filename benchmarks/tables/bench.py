@@ -3,6 +3,13 @@
 Accuracy rows run ``task=evaluate`` (:mod:`lagfluid.evaluate`: the model and the MPS reference from the same
 initial state, metrics per stored frame), so every number comes from :mod:`lagfluid.metrics`; Table 2's
 rows are timed steps in this process. A failed row is recorded, not raised.
+
+Table 2's warm-up (:func:`timing_warmup`) is the profile's ``timing_warmup`` steps, and at least the
+simulator's ``history_length`` steps plus one: a simulator that wants ``H`` earlier states starts a scene
+built from scratch with ``H`` steps of its own start-up (e.g. a warm start by the MPS solver), which are
+not its time per step, and its first step of its own carries its lazy set-up. So the timed steps are all
+steps of the simulator itself. The number of timed steps is the profile's ``timing_steps``, or fewer where
+the key's ``table2`` row file caps it (``table.timing_steps``).
 """
 
 from __future__ import annotations
@@ -74,6 +81,16 @@ class Run:
         for k in keys:
             node = node.get(k) if isinstance(node, dict) else None
         return float(node) if isinstance(node, (int, float)) else math.nan
+
+
+def timing_warmup(profile: Profile, history_length: int) -> int:
+    """Table 2's untimed steps before the timed ones: the profile's, and at least ``history_length + 1``.
+
+    A simulator that wants ``history_length`` earlier states spends that many steps of a scene built from
+    scratch on its start-up (another solver's warm start, not its own time per step); the one more step
+    is its first own step, which carries its lazy set-up as the first step of any simulator does.
+    """
+    return max(profile.timing_warmup, history_length + 1 if history_length else 0)
 
 
 class Bench:
@@ -176,19 +193,24 @@ class Bench:
         return run
 
     def time_steps(self, run: Run) -> Run:
-        """Table 2: warm-up, then timed steps of ``run`` (no writer, no metrics), in this process."""
+        """Table 2: warm-up, then timed steps of ``run`` (no writer, no metrics), in this process.
+
+        Warm-up: :func:`timing_warmup` steps; timed: the profile's ``timing_steps``, capped by the row's
+        ``table.timing_steps`` (module doc).
+        """
         if run.key in self.done:
             return self.done[run.key]
         p = self.profile
+        timed = min(p.timing_steps, run.sim.timing_steps or p.timing_steps)
         run.overrides = [
             *run.sim.model_overrides(self.weights),
             *run.overrides,
             f"scene={p.timing_scene}",
-            f"steps={p.timing_steps}",
+            f"steps={timed}",
             f"threads={self.threads}",
             "progress=false",
         ]
-        print(f"[tables] {run.key}: {run.command} (+{p.timing_warmup} warm-up steps)", flush=True)
+        print(f"[tables] {run.key}: {run.command} (after the warm-up steps)", flush=True)
         start = time.perf_counter()
         try:
             head = [f"experiment={run.experiment}"] if run.experiment else [f"model={run.sim.model}"]
@@ -196,9 +218,10 @@ class Bench:
             torch.set_num_threads(self.threads)
             torch.manual_seed(int(cfg.seed))
             sim = build_simulator(cfg)
+            warmup = timing_warmup(p, sim.history_length)
             state = at_simulator_time_step(build_initial_state(cfg), sim, cfg)
             guard = run_guard(cfg, sim)
-            state, _ = rollout(sim, state, p.timing_warmup, guard=guard)
+            state, _ = rollout(sim, state, warmup, guard=guard)
             state, record = rollout(sim, state, int(cfg.steps), guard=guard, reset=False)
             steps = record["step_seconds"]
             nns = record["stage_seconds"].get("neighbors", [0.0] * len(steps))
@@ -211,19 +234,26 @@ class Bench:
                 "neighbors_ms": 1e3 * median(nns),
                 "inference_ms": 1e3 * median(s - n for s, n in zip(steps, nns, strict=True)),
                 "stages_ms": {k: 1e3 * median(v) for k, v in record["stage_seconds"].items()},
+                "warmup_steps": warmup,
                 "timed_steps": len(steps),
             }
         except Exception as err:  # recorded: one failed row must not lose the hour of rows around it
             run.error = f"{type(err).__name__}: {err}".splitlines()[0]
             log.warning("row %s failed: %s", run.key, run.error)
         run.info["wall_s"] = time.perf_counter() - start
-        print(f"[tables] {run.key}: {'ok' if run.ok else 'FAILED'} {run.error}", flush=True)
+        m = run.metrics or {}
+        done = f"ok ({m['warmup_steps']} warm-up + {m['timed_steps']} timed steps)" if run.ok else "FAILED"
+        print(f"[tables] {run.key}: {done} in {run.info['wall_s']:.1f} s {run.error}", flush=True)
         self.done[run.key] = run
         return run
 
     # -------------------------------------------------------------- the rows of each part
     def table3_runs(self, case: str) -> list[Run]:
-        """Tables 1/3 rows of ``case`` (``dam`` or ``waterfall``): every simulator against MPS."""
+        """Tables 1/3 rows of ``case`` (``dam`` or ``waterfall``): every simulator against MPS.
+
+        A key without a ``table3_<case>`` row file but with other row files (a Table 2 timing row) is left
+        out (:meth:`~benchmarks.tables.simulators.Simulator.appears_in`).
+        """
         p = self.profile
         if case == "dam":
             ov = self.dam_overrides(p.dam_scene, p.dam_duration)
@@ -232,6 +262,8 @@ class Bench:
             ov = self.dam_overrides("waterfall", p.waterfall_duration, extra=p.waterfall)
         runs = []
         for sim in all_simulators(p.simulators):
+            if not sim.appears_in(f"table3_{case}_{sim.key}"):
+                continue
             figures = p.figures and case == "dam" and sim.key == FGN
             own = self.own_dt(sim)
             if own is not None:  # the same duration and frames in its own steps, against the same MPS
@@ -264,9 +296,11 @@ class Bench:
         return self._own_dt[sim.key]
 
     def table2_runs(self) -> list[Run]:
-        """Table 2 rows: every simulator timed on the timing scene."""
+        """Table 2 rows: every simulator with a Table 2 row (or no row files at all), on the timing scene."""
         runs = []
         for sim in all_simulators(self.profile.simulators):
+            if not sim.appears_in(f"table2_{sim.key}"):
+                continue
             runs.append(
                 self.time_steps(Run(f"table2/{sim.key}", sim.label, sim, row_file(f"table2_{sim.key}"), []))
             )

@@ -35,11 +35,22 @@ PAPER_TABLE2 = {"FGN": (41996, 5.7, 46.4), "MPS": (None, 313.2, 42.3)}  # parame
 PAPER_TABLE4 = {"advection": (12.4, 5.6), "pressure": (8.3, 1.1)}  # percent, mean and std
 
 
+def row_notes(runs: list[Run]) -> str:
+    """The notes of the rows' simulators (their row files' ``table.note``), one line each; '' when none."""
+    notes = dict.fromkeys((r.label, r.sim.note) for r in runs if r.sim.note)
+    return "".join(f"- {label}: {note}\n" for label, note in notes)
+
+
 def part_table2(bench: Bench, report: Report) -> None:
     """Table 2: parameters and time per step, every simulator, one after another in this process."""
     p = bench.profile
-    rows = table2_rows(bench.table2_runs())
+    runs = bench.table2_runs()
+    rows = table2_rows(runs)
     report.csv("table2", rows)
+
+    def steps(r: dict[str, Any]) -> str:
+        return "-" if r["timed_steps"] is None else f"{r['warmup_steps']} + {r['timed_steps']}"
+
     cells = [
         [
             r["simulator"],
@@ -49,6 +60,7 @@ def part_table2(bench: Bench, report: Report) -> None:
             r["inference_ms"],
             r["neighbor_search_ms"],
             r["speedup_vs_mps"],
+            steps(r),
             r["status"],
         ]
         for r in rows
@@ -61,16 +73,25 @@ def part_table2(bench: Bench, report: Report) -> None:
         "inference ms",
         "NNS ms",
         "MPS time / time",
+        "steps (warm-up + timed)",
         "status",
     ]
     paper = [[k, v[0], v[1], v[2]] for k, v in PAPER_TABLE2.items()]
+    notes = row_notes(runs)
     report.sections["table2"] = (
         f"## Table 2: time per step on `{p.timing_scene}`\n\n"
-        f"Median over {p.timing_steps} steps after {p.timing_warmup} warm-up steps, every simulator in this "
-        "process one after another. NNS: the neighbour search (Verlet list update and filtering); inference: "
-        "the rest of the step (networks or exact stages, pressure gradient, update). Parameters: trainable "
-        f"parameters of the learned stages. Machine: {report.meta['machine']}.\n\n"
-        f"{md_table(header, cells, 'lrrrrrrl')}\n\nThe paper's Table 2 (a GPU, ~40k particles):\n\n"
+        f"Median over the profile's {p.timing_steps} timed steps after {p.timing_warmup} warm-up steps, "
+        "every simulator in this process one after another. A simulator that starts from H earlier states "
+        "(its `history_length`) warms up for at least H + 1 steps: on a scene built from scratch its first H "
+        "steps are its start-up (e.g. a warm start by MPS), the next its first own step, and none of them is "
+        "timed. A row file may time fewer steps than the profile (`table.timing_steps`, for a network too "
+        "slow for the profile's number): the median is then over those few steps (column 'steps'). NNS: the "
+        "neighbour search (Verlet list update and filtering; a graph network's graph construction); "
+        "inference: the rest of the step (networks or exact stages, pressure gradient, update). Parameters: "
+        f"trainable parameters of the learned stages. Machine: {report.meta['machine']}.\n\n"
+        f"{md_table(header, cells, 'lrrrrrrrl')}\n\n"
+        + (f"{notes}\n" if notes else "")
+        + "The paper's Table 2 (a GPU, ~40k particles):\n\n"
         f"{md_table(['paper', 'parameters', 'inference ms', 'NNS ms'], paper)}\n"
     )
     fgn_label, mps_label = simulator(FGN).label, simulator(GROUND_TRUTH).label
@@ -98,9 +119,10 @@ def part_table3(bench: Bench, report: Report, dam_runs: list[Run]) -> None:
     """Tables 1 and 3: accuracy of every simulator against MPS on the dam and the water fall."""
     p = bench.profile
     rows = table3_rows("dam", dam_runs)
-    if p.waterfall:
-        rows += table3_rows("waterfall", bench.table3_runs("waterfall"))
+    waterfall_runs = bench.table3_runs("waterfall") if p.waterfall else []
+    rows += table3_rows("waterfall", waterfall_runs)
     report.csv("table3", rows)
+    notes = row_notes(dam_runs + waterfall_runs)
     cases = {
         "dam": f"`{p.dam_scene}`, {p.dam_duration:g} s",
         "waterfall": f"`waterfall` {' '.join(p.waterfall or ())}, {p.waterfall_duration:g} s",
@@ -117,6 +139,7 @@ def part_table3(bench: Bench, report: Report, dam_runs: list[Run]) -> None:
         "divergence.\n\n"
         + md_table(["case", "simulator", *header, "status"], cells, "ll" + "r" * 6 + "l")
         + "\n"
+        + (f"\n{notes}" if notes else "")
     )
     ours, lines = [], []
     fgn_label = simulator(FGN).label
@@ -252,6 +275,7 @@ def part_tradeoff(bench: Bench, report: Report, dam_runs: list[Run], fig5_runs: 
         raise ConfigError(f"trade-off rows were compared with different MPS references: {sorted(hashes)}")
     rows = tradeoff_rows(runs)
     report.csv("tradeoff", rows)
+    notes = row_notes(dam_runs)
     png = report.path("tradeoff.png")
     plot_tradeoff(png, rows, f"Speed/accuracy on {p.dam_scene}, {p.dam_duration:g} s ({p.name} profile)")
     order = sorted(rows, key=lambda r: (not math.isfinite(r["s_per_simulated_s"]), r["s_per_simulated_s"]))
@@ -279,9 +303,13 @@ def part_tradeoff(bench: Bench, report: Report, dam_runs: list[Run], fig5_runs: 
         "reference (mean over the frames) and the simulator's own density error. A run at a coarser spacing "
         "is compared in physical units in the frame of the boundary surface; its Chamfer distance includes "
         "the lattice offset already there at t = 0 (a coarse particle sits between reference particles; "
-        "column 'at t = 0'). On the front: no other complete row is both cheaper and at least as accurate."
-        "\n\n"
-        f"{md_table(header, cells, 'lrrrrrrccl')}\n\n![trade-off]({png.name})\n"
+        "column 'at t = 0'). A simulator that starts from earlier states (its `history_length`) spends its "
+        "first steps on a scene built from scratch on its start-up (e.g. a warm start by MPS): like any "
+        "rollout from scratch, its cost and accuracy include them. On the front: no other complete row is "
+        "both cheaper and at least as accurate.\n\n"
+        f"{md_table(header, cells, 'lrrrrrrccl')}\n\n"
+        + (f"{notes}\n" if notes else "")
+        + f"![trade-off]({png.name})\n"
     )
     front = [r["simulator"] for r in order if r["pareto_chamfer_mean_mm"]]
     report.readme["tradeoff"] = (

@@ -9,6 +9,7 @@ from typing import Any
 import numpy as np
 
 from benchmarks.tables.bench import Run
+from benchmarks.tables.simulators import GROUND_TRUTH
 
 
 def plot_fig5(path: Path, runs: list[Run], verdict: str, title: str) -> None:
@@ -40,12 +41,19 @@ def plot_fig5(path: Path, runs: list[Run], verdict: str, title: str) -> None:
     plt.close(fig)
 
 
-def _colour(name: str) -> str:
-    if "authors" in name:
-        return "C1"
-    if "hybrid" in name:
-        return "C2"
-    return "k" if name.startswith("MPS") else "C0"
+# The colours of the simulators in the trade-off plot, in the order their rows come (the ground truth is
+# black; C3, red, is the Pareto front's).
+_PALETTE = ("C0", "C1", "C2", "C4", "C5", "C6", "C8", "C9", "C7")
+
+
+def simulator_colours(rows: list[dict[str, Any]]) -> dict[str, str]:
+    """One colour per simulator key (``simulator_key``), in the order of the rows; the ground truth black.
+
+    A simulator's variants (another dt, PPE tolerance or spacing) are its rows too and share its colour.
+    """
+    keys = [k for k in dict.fromkeys(r["simulator_key"] for r in rows) if k != GROUND_TRUTH]
+    colours = {k: _PALETTE[i % len(_PALETTE)] for i, k in enumerate(keys)}
+    return {GROUND_TRUTH: "k", **colours}
 
 
 def plot_tradeoff(path: Path, rows: list[dict[str, Any]], title: str) -> None:
@@ -69,9 +77,10 @@ def plot_tradeoff(path: Path, rows: list[dict[str, Any]], title: str) -> None:
         ("density_error_mean", "density error, mean over frames", "log"),
     )
     x_max = max((r["s_per_simulated_s"] for r in done), default=1.0)
+    colours = simulator_colours(rows)
     for ax, (metric, ylabel, yscale) in zip(axes, panels, strict=True):
         for number, r in enumerate(done, start=1):
-            colour = _colour(r["simulator"])
+            colour = colours[r["simulator_key"]]
             hollow = math.isfinite(r["chamfer_t0_mm"]) and r["chamfer_t0_mm"] > 0
             x, y = r["s_per_simulated_s"], r[metric]
             ax.scatter(x, y, s=36, facecolors="none" if hollow else colour, edgecolors=colour, zorder=3)
@@ -98,10 +107,14 @@ def plot_tradeoff(path: Path, rows: list[dict[str, Any]], title: str) -> None:
         ax.set_xlabel("wall seconds per simulated second (log)")
         ax.set_ylabel(ylabel)
         ax.grid(alpha=0.3, which="both")
-    key = "\n".join(f"{i:2d}  {r['simulator']}" for i, r in enumerate(done, start=1))
-    fig.text(0.815, 0.86, key, fontsize=8, va="top", family="monospace")
-    sub = "black: MPS, blue: FGN, green: hybrids, orange: authors' FGN; hollow: coarser spacing (its Chamfer "
-    sub += "includes the lattice offset at t = 0)"
+    # the key, each line in its simulator's colour (one text per line: a text has one colour)
+    line = 8 * 1.35 / 72 / fig.get_figheight()  # 8 pt lines in figure coordinates
+    for i, r in enumerate(done, start=1):
+        colour, top = colours[r["simulator_key"]], 0.86 - (i - 1) * line
+        text = f"{i:2d}  {r['simulator']}"
+        fig.text(0.815, top, text, fontsize=8, va="top", family="monospace", color=colour)
+    sub = "colour: one per simulator as in the key (black: the ground truth), its variants (dt, tolerance, "
+    sub += "spacing) share it; hollow: coarser spacing (its Chamfer includes the lattice offset at t = 0)"
     stopped = [r["simulator"] for r in rows if r not in done]
     if stopped:
         sub += "\nnot shown (stopped or failed): " + ", ".join(stopped)

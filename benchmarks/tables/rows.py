@@ -109,6 +109,8 @@ def table2_rows(runs: list[Run]) -> list[dict[str, Any]]:
                 "inference_ms": m.get("inference_ms", math.nan),
                 "neighbor_search_ms": m.get("neighbors_ms", math.nan),
                 "speedup_vs_mps": ratio(mps_ms, m.get("step_ms", math.nan)),
+                "warmup_steps": m.get("warmup_steps"),
+                "timed_steps": m.get("timed_steps"),
                 "stages_ms": " ".join(f"{k}={v:.1f}" for k, v in (m.get("stages_ms") or {}).items()),
                 "status": "complete" if run.ok else f"failed: {run.error}",
                 **provenance_columns(run),
@@ -184,6 +186,7 @@ def tradeoff_rows(runs: list[Run]) -> list[dict[str, Any]]:
         rows.append(
             {
                 "simulator": run.label,
+                "simulator_key": run.sim.key,  # the plot's colour: a simulator and its variants share one
                 "s_per_simulated_s": seconds_per_simulated_second(run),
                 "ms_per_step_median": 1e3 * float(timing.get("time_per_step_median_s", math.nan)),
                 "chamfer_mean_mm": run.summary("chamfer_mm", "mean"),

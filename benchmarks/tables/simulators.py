@@ -6,8 +6,16 @@ A simulator of the tables is a key ``K`` with row files in Hydra's ``experiment`
     table: {label: "hybrid: learned pressure", order: 2, weights: fgn}
 
 ``label`` names the row (default: the key), ``order`` places it (smallest first; rows without one follow,
-by key), ``weights`` says which weights the tables pass (:data:`WEIGHTS`). A registered simulator that no
-row file runs (``lagfluid.registry.available_simulators``) is listed after them and run as
+by key), ``weights`` says which weights the tables pass (:data:`WEIGHTS`), ``note`` is a sentence the
+parts print under a table the key appears in (e.g. what its weights are). Every row file of a key gives
+the same ``label``, ``order``, ``weights`` and ``note``. ``timing_steps`` (a ``table2_K`` file only) caps
+the steps Table 2 times for the key at that many (the profile's number when it is smaller), for a network
+too slow to time the profile's number of steps; Table 2 prints every row's warm-up and timed steps.
+
+A key appears in the tables it has row files for: a key with only ``table2_K`` is timed in Table 2 and
+appears nowhere else (e.g. an untrained network of some size: a time per step, no accuracy to report);
+it is then in neither Tables 1/3 nor the trade-off. A registered simulator that no row file runs
+(``lagfluid.registry.available_simulators``) is listed after them, appears in every table and is run as
 ``model=<name>`` with its defaults. So a new simulator is a registry entry plus its row files; nothing in
 ``benchmarks/`` names it.
 
@@ -24,7 +32,7 @@ import math
 import os
 import re
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import cache
 from pathlib import Path
 from typing import Any
@@ -56,7 +64,7 @@ CASES = ("dam", "waterfall")
 GROUND_TRUTH, FGN, LEARNED_ADVECTION = "mps", "fgn", "hybrid_advection"
 
 _ROW = re.compile(rf"^table(?:2|3_(?:{'|'.join(CASES)}))_(?P<key>.+)$")
-_BLOCK_KEYS = {"label", "order", "weights"}
+_BLOCK_KEYS = {"label", "order", "weights", "note", "timing_steps"}
 
 
 @dataclass(frozen=True)
@@ -68,12 +76,26 @@ class Simulator:
         label: the tables' name of it (``hybrid: learned pressure``).
         model: the registered simulator its rows compose to (``model=...``), used for a row without a file.
         weights: which weights the tables pass, a key of :data:`WEIGHTS`.
+        note: a sentence on the row for the parts' text ('' when none).
+        timing_steps: at most this many timed steps in Table 2 (None: the profile's number).
+        rows: the key's row files (``table2_<key>``, ...); empty for a registered simulator without any,
+            which then appears in every table.
     """
 
     key: str
     label: str
     model: str
     weights: str = "none"
+    note: str = ""
+    timing_steps: int | None = None
+    rows: tuple[str, ...] = field(default=(), compare=False, repr=False)
+
+    def appears_in(self, row: str) -> bool:
+        """Whether the tables run this key's row ``row`` (``table2_<key>``, ``table3_dam_<key>``, ...).
+
+        A key with row files appears in the tables it has files for; one without appears in all of them.
+        """
+        return not self.rows or row in self.rows
 
     def model_overrides(self, weights_dir: str | None) -> list[str]:
         """The ``model.weights`` override of this simulator's rows (``weights_dir``: ``--weights``)."""
@@ -107,6 +129,14 @@ def _row(name: str) -> tuple[str, dict[str, Any]]:
     order = block.get("order", math.inf)
     if not isinstance(order, (int, float)) or isinstance(order, bool):
         raise ConfigError(f"experiment={name}: table.order must be a number, got {order!r}")
+    if not isinstance(block.get("note", ""), str):
+        raise ConfigError(f"experiment={name}: table.note must be a sentence, got {block['note']!r}")
+    if "timing_steps" in block:
+        steps = block["timing_steps"]
+        if not name.startswith("table2_"):
+            raise ConfigError(f"experiment={name}: table.timing_steps is for a Table 2 row (table2_<key>)")
+        if not isinstance(steps, int) or isinstance(steps, bool) or steps < 1:
+            raise ConfigError(f"experiment={name}: table.timing_steps must be an integer >= 1, got {steps!r}")
     return str(cfg.model.name), block
 
 
@@ -116,18 +146,18 @@ def _from_rows(key: str, names: Sequence[str]) -> tuple[float, Simulator]:
     Raises:
         ConfigError: two row files of the key disagree (label, order, weights or model).
     """
-    seen: dict[tuple[str, str, str, float], str] = {}
+    seen: dict[tuple[str, str, str, float, str], str] = {}
+    timing_steps = None
     for name in names:
         model, block = _row(name)
-        seen.setdefault(
-            (str(block.get("label", key)), model, block.get("weights", "none"), block.get("order", math.inf)),
-            name,
-        )
+        described = (str(block.get("label", key)), model, block.get("weights", "none"))
+        seen.setdefault((*described, block.get("order", math.inf), block.get("note", "")), name)
+        timing_steps = block.get("timing_steps", timing_steps)  # only table2_<key> may hold it (_row)
     if len(seen) > 1:
-        described = "; ".join(f"{n}: label, model, weights, order = {v}" for v, n in seen.items())
+        described = "; ".join(f"{n}: label, model, weights, order, note = {v}" for v, n in seen.items())
         raise ConfigError(f"the row files of '{key}' describe it differently ({described})")
-    (label, model, weights, order), _ = next(iter(seen.items()))
-    return float(order), Simulator(key, label, model, weights)
+    (label, model, weights, order, note), _ = next(iter(seen.items()))
+    return float(order), Simulator(key, label, model, weights, note, timing_steps, tuple(sorted(names)))
 
 
 def all_simulators(keys: Sequence[str] | None = None) -> list[Simulator]:
