@@ -106,6 +106,23 @@ def test_every_tradeoff_and_fig5_row_file_is_compared_with_the_default_mps():
         assert key_hash(reference_key(reference_settings(cfg, overrides))) == default, name
 
 
+def test_the_gns_rows_run_alone_are_compared_with_the_default_mps_of_their_case():
+    """GNS steps by 8 ms: its row files' steps and frames, run alone, make evaluate ask MPS for the very
+    reference of the MPS rows (steps and frames times 4 at 2 ms)."""
+    from types import SimpleNamespace
+
+    from lagfluid.evaluate.task import reference_overrides
+
+    gns = SimpleNamespace(dt=0.008, name="gns")  # the simulator's dt is all the reference depends on
+    for case in ("dam", "waterfall"):
+        mps = compose_config([f"experiment=table3_{case}_mps"])
+        cfg = compose_config([f"experiment=table3_{case}_gns"])
+        assert cfg.steps * 0.008 == pytest.approx(mps.steps * 0.002)
+        overrides = reference_overrides(cfg, EvaluateOptions.from_config(cfg.evaluate), gns, None)
+        got = key_hash(reference_key(reference_settings(cfg, overrides)))
+        assert got == key_hash(reference_key(mps)), case
+
+
 # ------------------------------------------------------------------------------------------- simulators
 @pytest.fixture
 def runtime_plugin(monkeypatch):
@@ -141,6 +158,15 @@ def test_the_built_in_simulators_come_from_their_row_files_in_the_papers_order()
     assert all(
         s.rows == (f"table2_{s.key}", f"table3_dam_{s.key}", f"table3_waterfall_{s.key}") for s in sims[:5]
     )
+    # the GNS baseline plugin's rows (baselines/gns/conf/experiment): its shipped weights in every table, the
+    # paper-size untrained network in Table 2 alone, timed for fewer steps
+    gns, paper = sims[5:7]
+    assert (gns.key, gns.label, gns.model, gns.timing_steps) == ("gns", "GNS (CPU size)", "gns", None)
+    assert gns.rows == ("table2_gns", "table3_dam_gns", "table3_waterfall_gns") and "shipped" in gns.note
+    assert (paper.key, paper.model, paper.rows) == ("gns_paper", "gns", ("table2_gns_paper",))
+    assert "paper size" in paper.label and "timing only" in paper.label and paper.timing_steps == 3
+    assert paper.appears_in("table2_gns_paper") and not paper.appears_in("table3_dam_gns_paper")
+    assert compose_config(["experiment=table2_gns_paper"]).model.weights == "untrained"
     assert [s.key for s in all_simulators(["fgn_original", "mps"])] == ["mps", "fgn_original"]
     with pytest.raises(ConfigError, match=r"no simulator 'nope' in the tables; available: mps, fgn, "):
         simulator("nope")
