@@ -10,6 +10,8 @@ or ``huber`` at ``train.huber_delta``), Adam, the learning rate decayed exponent
 ``train.lr_start`` to ``train.lr_end`` over ``train.iterations.<name>`` iterations in batches of
 ``train.batch_size.<name>``. Normalisation statistics are fitted by the trainable from
 ``train.stat_samples`` training items before the first iteration and live in the network's buffers.
+``train.init_from=DIR`` (optional) fine-tunes: the network starts from ``DIR/<name>.pt``'s weights and keeps
+its statistics.
 Measurements behind the profiles: ``docs/training.md``.
 
 **Outputs** in ``out_dir`` (default ``runs/train/<model>-<data>``): ``<name>.pt`` (model, kind, network,
@@ -144,6 +146,9 @@ def train_one(cfg: DictConfig, trainable: Trainable, out_dir: Path) -> dict[str,
     }
     if loss_name != "mse":  # only then: checkpoints trained before the option existed keep their fingerprint
         identity["loss"] = {"name": loss_name, "delta": delta}
+    init_from = tcfg.get("init_from")
+    if init_from:  # only then, likewise
+        identity["init_from"] = str(Path(str(init_from)).resolve())
     fingerprint = _fingerprint(identity)
     ckpt_path, csv_path = out_dir / f"{kind}.pt", out_dir / f"{kind}_loss.csv"
 
@@ -152,6 +157,15 @@ def train_one(cfg: DictConfig, trainable: Trainable, out_dir: Path) -> dict[str,
     net = trainable.build_network()
     optimizer = torch.optim.Adam(net.parameters(), lr=float(tcfg.lr_start))
     start_step, elapsed, stats = 0, 0.0, None
+    if init_from and not ckpt_path.is_file():  # fine-tuning: start from trained weights and their statistics
+        init = read_checkpoint(Path(str(init_from)) / f"{kind}.pt", kind, model=trainable.model)
+        if dict(init["options"]) != options:
+            raise ConfigError(
+                f"train.init_from={init_from}: {kind}.pt has network options {init['options']}, not {options}"
+            )
+        net.load_state_dict(init["state_dict"])
+        stats = init.get("meta", {}).get("stats")
+        log.info("%s: starting from the weights and statistics of %s", kind, init_from)
     if ckpt_path.is_file():
         ckpt = read_checkpoint(ckpt_path, kind, model=trainable.model)
         meta = ckpt.get("meta", {})

@@ -100,3 +100,58 @@ def test_the_generic_loop_trains_any_registered_trainable(tiny_data, tmp_path, m
     assert len(losses) == 6 and losses[-1] < 0.2 * losses[0], losses
     with pytest.raises(ConfigError, match=r"unknown stage 'advection' of model fgn; available: line, all"):
         train(_compose("task=train", "model=fgn", "stage=advection", f"data.out_dir={tiny_data}"))
+
+
+def test_init_from_fine_tunes_trained_weights_with_their_statistics(tiny_data, tmp_path, monkeypatch):
+    monkeypatch.setitem(registry._REGISTERED_TRAINABLES, "fgn", lambda cfg: {"line": LinearFit("line")})
+    common = [
+        "task=train",
+        "model=fgn",
+        "data=tiny",
+        f"data.out_dir={tiny_data}",
+        "progress=false",
+        "+train.batch_size.line=2",
+        "train.log_every=1",
+        "train.checkpoint_every=1",
+    ]
+    first = tmp_path / "first"
+    train(
+        _compose(
+            *common, f"out_dir={first}", "+train.iterations.line=20", "train.lr_start=0.1", "train.lr_end=0.1"
+        )
+    )
+    trained = read_checkpoint(first / "line.pt")["state_dict"]
+    second = tmp_path / "second"
+    monkeypatch.setattr(
+        LinearFit, "fit_statistics", lambda self, net, items: pytest.fail("statistics refitted")
+    )
+    train(
+        _compose(
+            *common,
+            f"out_dir={second}",
+            "+train.iterations.line=1",
+            "train.lr_start=1e-12",
+            "train.lr_end=1e-12",
+            f"+train.init_from={first}",
+        )
+    )
+    tuned = read_checkpoint(second / "line.pt")
+    torch.testing.assert_close(tuned["state_dict"]["weight"], trained["weight"])
+    assert tuned["meta"]["stats"] == {"items": 6} and "init_from" in tuned["meta"]["identity"]
+    monkeypatch.setattr(LinearFit, "build_network", lambda self: nn.Linear(3, 1, bias=False))
+    monkeypatch.setattr(
+        LinearFit,
+        "__init__",
+        lambda self, name: (
+            setattr(self, "name", name) or setattr(self, "options", {"width": 3, "bias": False})
+        ),
+    )
+    with pytest.raises(ConfigError, match="has network options"):
+        train(
+            _compose(
+                *common,
+                f"out_dir={tmp_path / 'third'}",
+                "+train.iterations.line=1",
+                f"+train.init_from={first}",
+            )
+        )
