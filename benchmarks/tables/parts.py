@@ -25,13 +25,26 @@ from lagfluid.errors import ConfigError
 
 # The FGN paper's numbers (Li & Barati Farimani): Table 1 (density error mean/max, divergence mean/max,
 # Chamfer mean/max mm), Table 2 (parameters, inference ms, NNS ms; a GPU) and Table 4 (percent, mean/std).
+# Its baselines' rows (Table 3, Table 2) are the paper's facts too; a simulator of ours is set beside them
+# when its label starts with the paper's model name (e.g. "GNS (CPU size)").
 PAPER_TABLE1 = {
     ("dam", "FGN"): (0.0461, 0.0900, 0.0195, 0.0280, 24.2, 30.1),
+    ("dam", "GNS"): (0.0898, 0.3387, 0.0210, 0.0311, 26.1, 33.1),
+    ("dam", "CConv"): (0.1811, 0.2947, 0.0338, 0.1700, 31.4, 44.0),
     ("dam", "Ground truth"): (0.0380, 0.0710, 0.0190, 0.0268, None, None),
     ("waterfall", "FGN"): (0.0541, 0.1350, 0.0207, 0.0431, 24.8, 29.6),
+    ("waterfall", "GNS"): (0.1035, 0.3512, 0.0223, 0.0399, 25.6, 31.8),
+    ("waterfall", "CConv"): (0.2783, 0.4121, 0.0668, 0.2882, 40.4, 61.5),
     ("waterfall", "Ground truth"): (0.0429, 0.0966, 0.0196, 0.0398, None, None),
 }
-PAPER_TABLE2 = {"FGN": (41996, 5.7, 46.4), "MPS": (None, 313.2, 42.3)}  # parameters, inference ms, NNS ms
+PAPER_BASELINES = ("GNS", "CConv")
+# parameters, inference ms, NNS ms (CConv's on TensorFlow and Open3D)
+PAPER_TABLE2 = {
+    "FGN": (41996, 5.7, 46.4),
+    "GNS": (1406272, 44.6, 33.1),
+    "CConv": (692902, 28.9, 24.7),
+    "MPS": (None, 313.2, 42.3),
+}
 PAPER_TABLE4 = {"advection": (12.4, 5.6), "pressure": (8.3, 1.1)}  # percent, mean and std
 
 
@@ -105,6 +118,20 @@ def part_table2(bench: Bench, report: Report) -> None:
             ["FGN, paper (GPU)", 41996, 5.7, 46.4, 5.7 + 46.4],
             ["MPS, paper (GPU)", "-", 313.2, 42.3, 313.2 + 42.3],
         ]
+        for model in PAPER_BASELINES:  # ours beside the paper's, by label (module note on PAPER_TABLE1)
+            for r in (r for r in rows if str(r["simulator"]).startswith(model)):
+                cells.insert(
+                    -2,
+                    [
+                        f"{r['simulator']}, ours",
+                        r["parameters"],
+                        r["inference_ms"],
+                        r["neighbor_search_ms"],
+                        r["step_ms"],
+                    ],
+                )
+            par, inf, nns = PAPER_TABLE2[model]
+            cells.append([f"{model}, paper (GPU)", par, inf, nns, inf + nns])
         report.readme["table2"] = (
             f"**Table 2** (`{p.timing_scene}`, {fmt(mps['fluid_particles'])} fluid particles; "
             f"{report.meta['machine']}):\n\n"
@@ -140,6 +167,9 @@ def part_table3(bench: Bench, report: Report, dam_runs: list[Run]) -> None:
         + md_table(["case", "simulator", *header, "status"], cells, "ll" + "r" * 6 + "l")
         + "\n"
         + (f"\n{notes}" if notes else "")
+        + "\nThe paper's Tables 1 and 3 (dam ~10k, water fall ~80k particles):\n\n"
+        + md_table(["case", "paper", *header], [[c, m, *v] for (c, m), v in PAPER_TABLE1.items()], "llrrrrrr")
+        + "\n"
     )
     ours, lines = [], []
     fgn_label = simulator(FGN).label
@@ -151,6 +181,13 @@ def part_table3(bench: Bench, report: Report, dam_runs: list[Run]) -> None:
         for who, r in (("FGN, ours", fgn), ("Ground truth (MPS), ours", gt)):
             if r:
                 ours.append([case, who, *(r[k] for k in keys)])
+        for model in PAPER_BASELINES:  # ours beside the paper's, by label (module note on PAPER_TABLE1)
+            mine = [r for r in rows if r["case"] == case and str(r["simulator"]).startswith(model)]
+            if mine:
+                ours.append([case, f"{model}, paper", *PAPER_TABLE1[(case, model)]])
+                for r in mine:
+                    status = ": ".join(str(r["status"]).split(": ")[:2])  # "stopped: step 30"
+                    ours.append([case, f"{r['simulator']}, ours ({status})", *(r[k] for k in keys)])
         if fgn and gt:
             lines.append(
                 f"- {case}: FGN / MPS density error {fmt(ratio(fgn[keys[0]], gt[keys[0]]))} (paper "
