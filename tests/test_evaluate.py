@@ -183,6 +183,7 @@ class _Exploding:
     name = "exploding"
     dt = None
     history_length = 0
+    max_courant = None
     parameters = 0
     last_fields = None
 

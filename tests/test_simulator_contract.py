@@ -29,6 +29,7 @@ class FreeFall:
 
     name = "free_fall"
     history_length = 2
+    max_courant = None
     parameters = 0
     last_fields = None
 
@@ -66,7 +67,8 @@ def test_a_plugin_lacking_part_of_the_contract_is_named(monkeypatch):
         def step(self, state):
             return state
 
-    with pytest.raises(ConfigError, match=r"model 'half' built a Half that lacks history_length, parameters"):
+    lacks = r"model 'half' built a Half that lacks history_length, max_courant, parameters"
+    with pytest.raises(ConfigError, match=lacks):
         check_simulator(Half(), "half")
     monkeypatch.setitem(registry._REGISTERED, "half", lambda cfg: Half())
     with pytest.raises(ConfigError, match="lacks"):

@@ -91,6 +91,7 @@ class _HistorySimulator:
 
     name = "history2"
     history_length = 2
+    max_courant = None
     parameters = 0
     last_fields = None
     received: ClassVar[list[ParticleState]] = []  # what the last reset got: [state, *history]
