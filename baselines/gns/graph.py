@@ -62,6 +62,19 @@ def build_graph(pos: Tensor, fluid: Tensor, radius: float, batch: Tensor | None 
     return GNSGraph(nodes, int(fluid_rows.numel()), node_of[into_fluid])
 
 
+def fluid_acceleration(
+    net: GNSNet,
+    pos: Tensor,
+    velocities: Tensor,
+    graph: GNSGraph,
+    bounds: Tensor | None,
+    radius: float,
+) -> Tensor:
+    """The standardised acceleration (Nf, 3) of the fluid nodes (arguments as :func:`graph_inputs`)."""
+    nodes, edges = graph_inputs(net, pos, velocities, graph, bounds, radius)
+    return net(nodes, graph.edge_index, edges)[: graph.n_fluid]
+
+
 def bounds_features(pos: Tensor, bounds: Tensor | None, radius: float) -> Tensor:
     """(N, 6) distances to the lower and upper bound per axis over ``radius``, clipped to [-1, 1].
 

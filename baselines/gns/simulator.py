@@ -30,7 +30,7 @@ from lagfluid.models.mps_simulator import build_mps
 from lagfluid.models.simulator import Simulator
 from lagfluid.state import ParticleState
 
-from .graph import build_graph, graph_inputs
+from .graph import build_graph, fluid_acceleration
 from .network import GNSNet
 from .trainable import NAME
 
@@ -145,8 +145,8 @@ class GNSSimulator:
             graph = build_graph(pos, state.fluid_mask, radius)
             searched = time.perf_counter()
             bounds = None if state.bounds is None else state.bounds.to(dtype)
-            nodes, edges = graph_inputs(net, pos, self._velocities.to(dtype), graph, bounds, radius)
-            acc = net.acceleration.inverse(net(nodes, graph.edge_index, edges)[:nf]).to(state.dtype)
+            acc = fluid_acceleration(net, pos, self._velocities.to(dtype), graph, bounds, radius)
+            acc = net.acceleration.inverse(acc).to(state.dtype)
             fluid_pos, velocity = semi_implicit_euler(state.pos[:nf], self._velocities[:, -1], acc, dt)
             new = self._advanced(state, fluid_pos, velocity, dt)
             end = time.perf_counter()

@@ -34,7 +34,7 @@ from lagfluid.errors import ConfigError, LagfluidError
 from lagfluid.integrate import acceleration_from_positions, semi_implicit_euler
 from lagfluid.state import ParticleType
 
-from .graph import build_graph, graph_inputs
+from .graph import build_graph, fluid_acceleration
 from .network import GNSNet
 
 NAME = "gns"
@@ -94,8 +94,7 @@ def step_acceleration(
     radius = net.radius * l0
     graph = build_graph(pos, fluid, radius, batch)
     velocities = (frames[:, 1:] - frames[:, :-1]) / dt
-    nodes, edges = graph_inputs(net, pos, velocities, graph, bounds, radius)
-    return net(nodes, graph.edge_index, edges)[: graph.n_fluid]
+    return fluid_acceleration(net, pos, velocities, graph, bounds, radius)
 
 
 class GNSTrainable:
