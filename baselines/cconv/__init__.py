@@ -1,0 +1,15 @@
+"""CConv, continuous convolutions (Ummenhofer et al. 2020), as lagfluid's second paper A.5 baseline.
+
+DeepLagrangianFluids' network in pure PyTorch (no Open3D, no compiled op), so it runs wherever lagfluid
+runs, on the CPU and on CUDA. The package is a lagfluid plugin (entry points in ``pyproject.toml``):
+
+* :mod:`baselines.cconv.conv`: the :class:`~baselines.cconv.conv.ContinuousConv` layer and its pair geometry;
+* :mod:`baselines.cconv.network`: :class:`~baselines.cconv.network.CConvNet`, their ``MyParticleNetwork``;
+* :mod:`baselines.cconv.boundary`: boundary particles -> surface points with normals;
+* :mod:`baselines.cconv.simulator`: ``model=cconv_original`` rollouts and :func:`load_dlf_network`;
+* ``conf/``: the config groups.
+"""
+
+from .simulator import load_dlf_network
+
+__all__ = ["load_dlf_network"]

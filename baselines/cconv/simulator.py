@@ -1,0 +1,184 @@
+"""``model=cconv`` / ``model=cconv_original``: a CConv network as a lagfluid ``Simulator``.
+
+Each step is the network's own (DeepLagrangianFluids): gravity and a trapezoid position update, a learned
+position correction, the velocity implied by the displacement (:class:`~baselines.cconv.network.CConvNet`).
+The state is the fluid's positions and velocities (no history). The boundary enters once per scene, at
+:meth:`CConvSimulator.reset`, as surface points and normals (:func:`baselines.cconv.boundary.surface_points`);
+the convolutions see only those within their radius of the fluid. The network works in its own axes:
+``model=cconv_original`` is DeepLagrangianFluids' published network (y up, dt 20 ms), so positions and
+velocities are rotated into its frame and back (z up here); ``model=cconv`` is trained here, in ours.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from lagfluid.errors import ConfigError, RolloutError
+from lagfluid.models.checkpoint import CheckpointError
+from lagfluid.state import ParticleState
+
+from .boundary import surface_points
+from .network import CConvNet
+
+__all__ = ["Y_UP", "CConvSimulator", "build_original", "load_dlf_network"]
+
+Y_UP = torch.tensor([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
+"""Rotation from lagfluid's axes (z up) to DeepLagrangianFluids' (y up): ``x_theirs = Y_UP @ x_ours``."""
+
+
+class CConvSimulator:
+    """CConv rollouts (module doc).
+
+    Args:
+        net: the network, on the run's device and dtype.
+        name: registry name (``cconv`` or ``cconv_original``).
+        weights: where the weights came from (stored with every rollout).
+        axes: (3, 3) rotation from lagfluid's axes to the network's (identity: the same).
+        surface_offset: boundary surface points in front of the wall particles, l0 (see ``boundary``).
+    """
+
+    history_length = 0
+    last_fields = None
+
+    def __init__(
+        self, net: CConvNet, name: str, weights: str, axes: Tensor, surface_offset: float = 0.5
+    ) -> None:
+        self.net = net.eval()
+        self.name = name
+        self.weights = weights
+        self.dt = float(net.timestep)
+        # A step may move a particle as far as the filter radius (2.25 l0 at DeepLagrangianFluids' scale):
+        # beyond it the convolutions no longer see what the step runs into.
+        self.max_courant = net.filter_radius / (2 * net.particle_radius)
+        dtype = net.gravity.dtype
+        self.axes = axes.to(device=net.gravity.device, dtype=dtype)
+        self.surface_offset = float(surface_offset)
+        self.last_info: dict[str, float] = {}
+        self._timings: dict[str, float] = {}
+        self._box: Tensor | None = None  # (S, 3) surface points, network axes
+        self._box_normals: Tensor | None = None
+
+    @property
+    def parameters(self) -> int:
+        """Trained parameters (692,902 for DeepLagrangianFluids' network)."""
+        return sum(p.numel() for p in self.net.parameters())
+
+    @property
+    def last_timings(self) -> dict[str, float]:
+        """Seconds of the last step: ``neighbors`` (the pair geometry) and ``network``."""
+        return dict(self._timings)
+
+    def reset(self, state: ParticleState, history: Sequence[ParticleState] = ()) -> None:
+        """The scene's boundary surface, in the network's axes (``history`` is not needed).
+
+        Raises:
+            RolloutError: a scene at another particle spacing than the network's.
+        """
+        spacing = 2 * self.net.particle_radius
+        if abs(state.params.l0 - spacing) > 1e-6 * spacing:
+            raise RolloutError(
+                f"{self.name}: the network was trained at particle spacing {spacing} m (2 particle radii), "
+                f"the scene has l0 = {state.params.l0} m"
+            )
+        boundary = state.pos[state.n_fluid :].to(self.axes.dtype)
+        points, normals, _ = surface_points(boundary, state.params.l0, self.surface_offset)
+        self._box = points @ self.axes.T
+        self._box_normals = normals @ self.axes.T
+        self.last_info = {"surface_points": float(points.shape[0])}
+
+    @torch.no_grad()
+    def step(self, state: ParticleState, *, record: bool = False) -> ParticleState:
+        """The state one network step (``dt``) later; the boundary never moves."""
+        if self._box is None or self._box_normals is None:
+            raise RolloutError(f"{self.name}: call reset(state) before step()")
+        if abs(state.params.dt - self.dt) > 1e-9:
+            raise RolloutError(f"{self.name} steps by {self.dt} s, the state has dt {state.params.dt}")
+        start = time.perf_counter()
+        nf, net, axes = state.n_fluid, self.net, self.axes
+        pos = state.pos[:nf].to(axes.dtype) @ axes.T
+        vel = state.vel[:nf].to(axes.dtype) @ axes.T
+        pos2, vel2 = net.integrate_pos_vel(pos, vel)
+        fluid_geo, obstacle_geo = net.geometries(pos2, self._box)
+        searched = time.perf_counter()
+        new_pos = pos2 + net.correction(fluid_geo, obstacle_geo, vel2, None, self._box_normals)
+        new_vel = (new_pos - pos) / net.timestep
+        end = time.perf_counter()
+        self._timings = {"neighbors": searched - start, "network": end - searched}
+        self.last_info = {
+            "fluid_pairs": float(fluid_geo.num_neighbors.sum()),
+            "surface_points": float(len(self._box)),
+        }
+        out_pos, out_vel = state.pos.clone(), state.vel.clone()
+        out_pos[:nf] = (new_pos @ axes).to(state.dtype)  # axes is a rotation: its inverse is its transpose
+        out_vel[:nf] = (new_vel @ axes).to(state.dtype)
+        return ParticleState(
+            pos=out_pos,
+            vel=out_vel,
+            ptype=state.ptype,
+            params=state.params,
+            pressure=torch.zeros_like(state.pressure),
+            time=state.time + self.dt,
+            step=state.step + 1,
+            bounds=state.bounds,
+            check=False,
+        )
+
+    def attributes(self) -> dict[str, Any]:
+        """Where the weights came from, the step and the boundary surface."""
+        return {
+            "weights": self.weights,
+            "network_dt": self.dt,
+            "particle_radius": self.net.particle_radius,
+            "surface_offset_l0": self.surface_offset,
+        }
+
+
+def load_dlf_network(path: str | Path, **options: Any) -> CConvNet:
+    """DeepLagrangianFluids' ``MyParticleNetwork`` with the weights of their checkpoint ``path``.
+
+    The module takes ``forward((pos, vel, feats, box, box_feats))`` and returns ``(pos, vel)`` in their
+    units and axes (y up, dt 0.02 s, particle radius 0.025 m), so their scripts port unchanged. Their
+    published ``pretrained_model_weights.pt`` is a plain tensor state dict (CDLA-Permissive-1.0).
+
+    Args:
+        path: a ``.pt`` state dict of ``MyParticleNetwork``.
+        options: :class:`CConvNet` arguments where the checkpoint was made with non-default ones.
+
+    Raises:
+        CheckpointError: a missing or unreadable file, or a state dict of another network.
+    """
+    file = Path(path)
+    if not file.is_file():
+        raise CheckpointError(f"no DeepLagrangianFluids checkpoint at {file}")
+    try:
+        state = torch.load(file, map_location="cpu", weights_only=True)
+    except Exception as exc:
+        raise CheckpointError(f"{file} is not a readable torch state dict: {exc}") from exc
+    if isinstance(state, dict) and "model" in state and isinstance(state["model"], dict):
+        state = state["model"]  # their training script saves {"model": state_dict, "optimizer": ...}
+    net = CConvNet(**options)
+    result = net.load_state_dict(state, strict=False)
+    if result.missing_keys or result.unexpected_keys:
+        raise CheckpointError(
+            f"{file} is not a MyParticleNetwork state dict: missing {result.missing_keys[:5]}, "
+            f"unexpected {result.unexpected_keys[:5]}"
+        )
+    return net
+
+
+def build_original(cfg: Any) -> CConvSimulator:
+    """``model=cconv_original``: DeepLagrangianFluids' network (``model.weights``), their axes and dt."""
+    weights = cfg.model.get("weights")
+    if weights in (None, "", "???"):
+        raise ConfigError(
+            "model=cconv_original needs model.weights=<DeepLagrangianFluids' pretrained_model_weights.pt>"
+        )
+    dtype = getattr(torch, str(cfg.dtype))
+    net = load_dlf_network(str(weights)).to(device=torch.device(str(cfg.device)), dtype=dtype)
+    return CConvSimulator(net, "cconv_original", str(weights), Y_UP, float(cfg.model.surface_offset))

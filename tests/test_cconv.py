@@ -1,0 +1,375 @@
+"""CConv (baselines/cconv): the continuous convolution against analytic cases and Open3D's op (an optional
+oracle: ``pip install open3d-cpu==0.20.0``), DeepLagrangianFluids' network and weights, the boundary
+surface, invariances, batching and the ``model=cconv_original`` rollout (seconds)."""
+
+import math
+from importlib import metadata
+from pathlib import Path
+
+import pytest
+import torch
+import torch.nn.functional as F
+from hydra import compose, initialize_config_dir
+
+from baselines.cconv import load_dlf_network
+from baselines.cconv.boundary import surface_points
+from baselines.cconv.conv import (
+    MAPPINGS,
+    ContinuousConv,
+    ball_to_cube_volume_preserving,
+    conv_geometry,
+    conv_pairs,
+    filter_coordinates,
+    window_poly6,
+)
+from baselines.cconv.network import CConvNet
+from baselines.cconv.simulator import Y_UP, build_original
+from lagfluid.config import at_simulator_time_step, build_initial_state, run_guard
+from lagfluid.errors import ConfigError, RolloutError
+from lagfluid.models.checkpoint import CheckpointError
+from lagfluid.models.simulator import check_simulator
+from lagfluid.registry import available_simulators
+from lagfluid.rollout import rollout
+from lagfluid.run import CONF_DIR
+
+SHARED = Path(__file__).resolve().parents[2] / "shared"
+DLF_WEIGHTS = SHARED / "reference" / "cconv_original" / "pretrained_model_weights.pt"
+needs_dlf_weights = pytest.mark.skipif(not DLF_WEIGHTS.is_file(), reason="../shared/reference is not present")
+
+
+def _open3d():
+    """Open3D's torch ops, or skip (the oracle is an optional extra)."""
+    try:
+        import open3d.ml.torch as ml3d
+    except Exception:
+        pytest.skip("open3d-cpu (the optional CConv oracle) is not installed")
+    return ml3d
+
+
+def _compose(*overrides):
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        return compose(config_name="config", overrides=list(overrides))
+
+
+def _cloud(n=300, seed=0, dtype=torch.float32):
+    g = torch.Generator().manual_seed(seed)
+    return torch.rand(n, 3, generator=g, dtype=dtype), torch.Generator().manual_seed(seed + 1)
+
+
+def _block_and_floor(dtype=torch.float32, seed=0, shift=(0.0, 0.0, 0.0)):
+    """DeepLagrangianFluids' units (y up): a jittered 6^3 fluid block over a 12 x 12 surface floor."""
+    g = torch.Generator().manual_seed(seed)
+    a = torch.arange(6, dtype=dtype) * 0.05
+    pos = torch.stack(torch.meshgrid(a, a + 0.05, a, indexing="ij"), -1).reshape(-1, 3)
+    pos = pos + 0.004 * torch.randn(pos.shape, generator=g, dtype=dtype)
+    vel = 0.5 * torch.randn(pos.shape, generator=g, dtype=dtype)
+    b = torch.arange(-3, 9, dtype=dtype) * 0.05
+    bx, bz = torch.meshgrid(b, b, indexing="ij")
+    box = torch.stack([bx, torch.zeros_like(bx), bz], -1).reshape(-1, 3)
+    normals = torch.tensor([0.0, 1.0, 0.0], dtype=dtype).expand_as(box).contiguous()
+    s = torch.tensor(shift, dtype=dtype)
+    return pos + s, vel, box + s, normals
+
+
+# ------------------------------------------------------------------------------------------ the operator
+def test_volume_preserving_mapping_keeps_axes_and_fills_the_cube():
+    pts = torch.tensor([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, 1.0], [0.3, 0.3, 0.0]])
+    cube = ball_to_cube_volume_preserving(pts)
+    # the centre and the axes stay (the axis ends are the face centres); a point on the xy diagonal goes out
+    # to the cube's diagonal at its own distance from the z axis
+    assert torch.allclose(cube[:4], pts[:4], atol=1e-6)
+    assert torch.allclose(cube[4], torch.tensor([0.3 * math.sqrt(2), 0.3 * math.sqrt(2), 0.0]), atol=1e-6)
+    # volume preserving: uniform points in the ball are uniform in the cube (mean |coordinate| 1/2)
+    g = torch.Generator().manual_seed(0)
+    u = torch.randn(200_000, 3, generator=g, dtype=torch.float64)
+    u = u / u.norm(dim=1, keepdim=True) * torch.rand(200_000, 1, generator=g, dtype=torch.float64) ** (1 / 3)
+    c = ball_to_cube_volume_preserving(u)
+    assert c.abs().max() <= 1 + 1e-9
+    assert torch.allclose(c.abs().mean(0), torch.full((3,), 0.5, dtype=torch.float64), atol=5e-3)
+
+
+def test_a_constant_kernel_sums_the_window_over_the_neighbours():
+    pos, _ = _cloud(200)
+    r = 0.25
+    pairs = conv_pairs(pos, None, r)
+    geo = conv_geometry(pos, pos, pairs, r)
+    conv = ContinuousConv(1, 1)
+    with torch.no_grad():
+        conv.kernel.fill_(1.0)
+    out = conv(torch.ones(200, 1), geo)[:, 0]
+    d2 = ((pos[:, None] - pos[None]) ** 2).sum(-1)
+    expected = torch.where((d2 < r * r) & (d2 > 0), window_poly6(d2 / r**2), 0.0).sum(1)
+    assert torch.allclose(out, expected, atol=1e-5)
+    assert torch.equal(geo.num_neighbors, ((d2 < r * r) & (d2 > 0)).sum(1).float())
+
+
+def test_a_kernel_linear_in_the_grid_coordinate_reads_back_the_mapped_offset():
+    # K(cell) = x index: trilinear interpolation is exact for a linear function, so each pair contributes
+    # its filter x coordinate (identity mapping: (rel_x / R + 1) / 2 * 3)
+    pos = torch.tensor([[0.0, 0.0, 0.0], [0.07, 0.02, -0.01]])
+    r = 0.1
+    geo = conv_geometry(pos, pos, conv_pairs(pos, None, r), r, mapping="identity", window=None)
+    conv = ContinuousConv(1, 1, mapping="identity", window=None)
+    with torch.no_grad():
+        conv.kernel.copy_(torch.arange(4.0).view(1, 1, 4, 1, 1).expand(4, 4, 4, 1, 1))
+    out = conv(torch.ones(2, 1), geo)[:, 0]
+    expected = (torch.tensor([0.07, -0.07]) / r + 1) / 2 * 3
+    assert torch.allclose(out, expected, atol=1e-6)
+    coord = filter_coordinates(pos[1:] - pos[:1], r, (4, 4, 4), "identity")
+    assert torch.allclose(coord[0], (torch.tensor([0.07, 0.02, -0.01]) / r + 1) / 2 * 3, atol=1e-6)
+
+
+def test_coincident_points_are_ignored_in_either_set_as_open3d_does():
+    pos = torch.tensor([[0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.05, 0.0, 0.0]])
+    geo = conv_geometry(pos, pos, conv_pairs(pos, None, 0.1), 0.1)
+    assert geo.num_neighbors.tolist() == [1.0, 1.0, 2.0]  # the duplicates do not see each other
+    box = torch.tensor([[0.0, 0.0, 0.0], [0.0, 0.05, 0.0]])
+    geo = conv_geometry(box, pos[:1], conv_pairs(box, pos[:1], 0.1), 0.1)
+    assert geo.num_neighbors.tolist() == [1.0]
+
+
+def test_chunks_of_kernel_cells_give_the_same_result_and_gradients():
+    pos, g = _cloud(150)
+    feats = torch.randn(150, 5, generator=g, requires_grad=True)
+    pairs = conv_pairs(pos, None, 0.3)
+    conv = ContinuousConv(5, 7)
+    outs, grads = [], []
+    for chunk in (None, 5, 16):
+        geo = conv_geometry(pos, pos, pairs, 0.3, chunk_cells=chunk)
+        assert len(geo.chunks) == (1 if chunk is None else math.ceil(64 / chunk))
+        out = conv(feats, geo)
+        (k_grad, f_grad) = torch.autograd.grad((out * out).sum(), [conv.kernel, feats])
+        outs.append(out.detach())
+        grads.append((k_grad, f_grad))
+    for o, (k, f) in zip(outs[1:], grads[1:], strict=False):
+        assert torch.allclose(o, outs[0], atol=1e-5)
+        assert torch.allclose(k, grads[0][0], atol=1e-4) and torch.allclose(f, grads[0][1], atol=1e-4)
+
+
+def test_bad_options_are_named():
+    with pytest.raises(ConfigError, match="mapping 'ball'"):
+        ContinuousConv(1, 1, mapping="ball")
+    pos, _ = _cloud(10)
+    geo = conv_geometry(pos, pos, conv_pairs(pos, None, 0.3), 0.3)
+    with pytest.raises(ValueError, match=r"features of shape \(10, 2\)"):
+        ContinuousConv(3, 1)(torch.ones(10, 2), geo)
+
+
+@pytest.mark.parametrize("mapping", sorted(MAPPINGS))
+@pytest.mark.parametrize("channels", [(4, 32), (96, 64)])
+def test_the_operator_matches_open3d(mapping, channels):
+    ml3d = _open3d()
+    cin, cout = channels
+    pos, g = _cloud(400)
+    out_pos = torch.rand(250, 3, generator=g)
+    r = 0.2
+    for same in (True, False):
+        queries = pos if same else out_pos
+        feats = torch.randn(400, cin, generator=g, requires_grad=True)
+        ref = ml3d.layers.ContinuousConv(
+            in_channels=cin,
+            filters=cout,
+            kernel_size=[3, 4, 5],
+            activation=None,
+            align_corners=True,
+            interpolation="linear",
+            coordinate_mapping=mapping,
+            normalize=False,
+            window_function=window_poly6,
+            radius_search_ignore_query_points=True,
+        )
+        ours = ContinuousConv(cin, cout, (3, 4, 5), mapping)
+        with torch.no_grad():
+            ref.kernel.copy_(torch.randn(ref.kernel.shape, generator=g))
+            ref.bias.copy_(torch.randn(cout, generator=g))
+            ours.kernel.copy_(ref.kernel)
+            ours.bias.copy_(ref.bias)
+        expected = ref(feats, pos, queries, 2 * r)
+        geo = conv_geometry(
+            pos, queries, conv_pairs(pos, None if same else queries, r), r, (3, 4, 5), mapping
+        )
+        got = ours(feats, geo)
+        scale = float(expected.detach().abs().max())
+        assert float((got - expected).abs().max()) < 2e-6 * max(scale, 1.0)
+        weight = torch.randn(expected.shape, generator=g)
+        ref_k, ref_f = torch.autograd.grad((expected * weight).sum(), [ref.kernel, feats])
+        our_k, our_f = torch.autograd.grad((got * weight).sum(), [ours.kernel, feats])
+        assert torch.allclose(our_k, ref_k, rtol=1e-4, atol=1e-4 * float(ref_k.abs().max()))
+        assert torch.allclose(our_f, ref_f, rtol=1e-4, atol=1e-4 * float(ref_f.abs().max()))
+
+
+# ------------------------------------------------------------------------------------------- the network
+def test_network_has_the_papers_parameter_count_and_dlf_state_dict_keys():
+    net = CConvNet()
+    assert net.trained_parameter_count() == 692_902
+    keys = set(net.state_dict())
+    assert {
+        "gravity",
+        "conv0_fluid.kernel",
+        "conv0_obstacle.offset",
+        "dense0_fluid.weight",
+        "conv3.bias",
+    } <= keys
+    assert tuple(net.conv1.kernel.shape) == (4, 4, 4, 96, 64)
+
+
+@needs_dlf_weights
+def test_dlf_weights_against_open3d_layers():
+    """Their network rebuilt from Open3D's layers with the same weights (their forward, written out)."""
+    ml3d = _open3d()
+
+    net = load_dlf_network(DLF_WEIGHTS)
+    assert net.trained_parameter_count() == 692_902
+    state = torch.load(DLF_WEIGHTS, weights_only=True)
+
+    def o3d_conv(name, cin, cout):
+        conv = ml3d.layers.ContinuousConv(
+            in_channels=cin,
+            filters=cout,
+            kernel_size=[4, 4, 4],
+            activation=None,
+            align_corners=True,
+            interpolation="linear",
+            coordinate_mapping="ball_to_cube_volume_preserving",
+            normalize=False,
+            window_function=window_poly6,
+            radius_search_ignore_query_points=True,
+        )
+        with torch.no_grad():
+            conv.kernel.copy_(state[f"{name}.kernel"])
+            conv.bias.copy_(state[f"{name}.bias"])
+        return conv
+
+    pos, vel, box, normals = _block_and_floor()
+    with torch.no_grad():
+        new_pos, new_vel = net((pos, vel, None, box, normals))
+        dt, extent = 0.02, 1.5 * 6 * 0.025
+        vel2 = vel + dt * state["gravity"]
+        pos2 = pos + dt * (vel2 + vel) / 2
+        feats = torch.cat([torch.ones_like(pos2[:, :1]), vel2], -1)
+        h = torch.cat(
+            [
+                o3d_conv("conv0_obstacle", 3, 32)(normals, box, pos2, extent),
+                o3d_conv("conv0_fluid", 4, 32)(feats, pos2, pos2, extent),
+                F.linear(feats, state["dense0_fluid.weight"], state["dense0_fluid.bias"]),
+            ],
+            -1,
+        )
+        for k, (cin, cout) in enumerate([(96, 64), (64, 64), (64, 3)], start=1):
+            x = F.relu(h)
+            out = o3d_conv(f"conv{k}", cin, cout)(x, pos2, pos2, extent)
+            out = out + F.linear(x, state[f"dense{k}.weight"], state[f"dense{k}.bias"])
+            h = out + h if out.shape == h.shape else out
+        expected = pos2 + h / 128
+    assert float((new_pos - expected).abs().max()) < 1e-6
+    assert torch.allclose(new_vel, (expected - pos) / dt, atol=1e-4)
+
+
+def test_load_dlf_network_names_a_missing_or_foreign_file(tmp_path):
+    with pytest.raises(CheckpointError, match="no DeepLagrangianFluids checkpoint"):
+        load_dlf_network(tmp_path / "nope.pt")
+    torch.save({"weight": torch.zeros(2)}, tmp_path / "other.pt")
+    with pytest.raises(CheckpointError, match="not a MyParticleNetwork state dict"):
+        load_dlf_network(tmp_path / "other.pt")
+
+
+def _net(seed=0, dtype=torch.float64):
+    torch.manual_seed(seed)
+    net = CConvNet().to(dtype)
+    with torch.no_grad():  # larger weights than the init, so that every branch shows in the output
+        for p in net.parameters():
+            p.mul_(3.0)
+    return net.eval()
+
+
+def test_permutation_invariance():
+    net = _net()
+    pos, vel, box, normals = _block_and_floor(torch.float64)
+    perm = torch.randperm(len(pos), generator=torch.Generator().manual_seed(3))
+    bperm = torch.randperm(len(box), generator=torch.Generator().manual_seed(4))
+    with torch.no_grad():
+        p1, v1 = net((pos, vel, None, box, normals))
+        p2, v2 = net((pos[perm], vel[perm], None, box[bperm], normals[bperm]))
+    assert torch.allclose(p2, p1[perm], atol=1e-12) and torch.allclose(v2, v1[perm], atol=1e-9)
+
+
+def test_translation_invariance():
+    net = _net()
+    with torch.no_grad():
+        p1, v1 = net((*_block_and_floor(torch.float64)[:2], None, *_block_and_floor(torch.float64)[2:]))
+        shifted = _block_and_floor(torch.float64, shift=(3.7, -1.25, 20.5))
+        p2, v2 = net((*shifted[:2], None, *shifted[2:]))
+    assert torch.allclose(p2 - torch.tensor([3.7, -1.25, 20.5], dtype=torch.float64), p1, atol=1e-9)
+    assert torch.allclose(v2, v1, atol=1e-7)
+
+
+def test_two_scenes_batched_equal_each_alone():
+    net = _net()
+    a = _block_and_floor(torch.float64, seed=0)
+    b = _block_and_floor(torch.float64, seed=1)  # overlaps a in space: only the batch ids keep them apart
+    with torch.no_grad():
+        alone = [net.compute_correction(*net.integrate_pos_vel(s[0], s[1]), None, s[2], s[3]) for s in (a, b)]
+        pos, vel = net.integrate_pos_vel(torch.cat([a[0], b[0]]), torch.cat([a[1], b[1]]))
+        batch = torch.repeat_interleave(torch.arange(2), torch.tensor([len(a[0]), len(b[0])]))
+        box_batch = torch.repeat_interleave(torch.arange(2), torch.tensor([len(a[2]), len(b[2])]))
+        both, counts = net.compute_correction(
+            pos, vel, None, torch.cat([a[2], b[2]]), torch.cat([a[3], b[3]]), batch, box_batch
+        )
+    assert torch.allclose(both, torch.cat([alone[0][0], alone[1][0]]), atol=1e-12)
+    assert torch.equal(counts, torch.cat([alone[0][1], alone[1][1]]))
+
+
+# -------------------------------------------------------------------------------- boundary and simulator
+def test_surface_points_are_the_inner_faces_with_normals_into_the_fluid():
+    l0 = 0.05
+    # a 4-layer floor z = 0, -l0, -2 l0, -3 l0 of 10 x 10 particles: the top layer is the surface (the bottom
+    # layer is one too, facing down, and the edges; the middle layers are not)
+    a = torch.arange(10, dtype=torch.float64) * l0
+    layers = [torch.stack(torch.meshgrid(a, a, indexing="ij"), -1).reshape(-1, 2) for _ in range(4)]
+    floor = torch.cat([torch.cat([xy, torch.full((len(xy), 1), -k * l0)], 1) for k, xy in enumerate(layers)])
+    points, normals, rows = surface_points(floor, l0)
+    top = floor[rows][:, 2] == 0
+    inner = (floor[rows][:, :2] > 0.5 * l0).all(1) & (floor[rows][:, :2] < 8.5 * l0).all(1)
+    assert int((top & inner).sum()) == 64  # every interior particle of the top face
+    assert torch.allclose(normals[top & inner], torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64))
+    assert torch.allclose(points[top & inner][:, 2], torch.full((64,), 0.5 * l0, dtype=torch.float64))
+    middle = (floor[rows][:, 2] < -0.5 * l0) & (floor[rows][:, 2] > -2.5 * l0)
+    assert int((middle & inner).sum()) == 0
+
+
+def test_the_plugin_is_found_and_composes():
+    assert "cconv_original" in {ep.name for ep in metadata.entry_points(group="lagfluid.simulators")}
+    assert "cconv" in {ep.name for ep in metadata.entry_points(group="lagfluid.configs")}
+    assert "cconv_original" in available_simulators()
+    cfg = _compose("model=cconv_original")
+    with pytest.raises(ConfigError, match=r"model\.weights"):
+        build_original(cfg)
+
+
+@needs_dlf_weights
+def test_cconv_original_rolls_out_the_small_dam_finite_and_inside_the_tank():
+    cfg = _compose("model=cconv_original", f"model.weights={DLF_WEIGHTS}", "scene=dam_small")
+    sim = check_simulator(build_original(cfg), "cconv_original")
+    assert sim.dt == 0.02 and sim.history_length == 0 and sim.parameters == 692_902
+    state = at_simulator_time_step(build_initial_state(cfg), sim, cfg)
+    final, _ = rollout(sim, state, 10, guard=run_guard(cfg, sim))
+    nf = final.n_fluid
+    assert bool(torch.isfinite(final.pos).all()) and final.fluid_outside_bounds().numel() == 0
+    assert float(final.pos[:nf, 2].mean()) < float(state.pos[:nf, 2].mean())  # the column falls
+    assert torch.equal(final.pos[nf:], state.pos[nf:])  # the boundary never moves
+    moved = (final.pos[:nf] - state.pos[:nf]).norm(dim=1)
+    assert float(moved.max()) > 0.05
+
+
+def test_the_y_up_rotation_maps_gravity_and_is_proper():
+    assert torch.allclose(Y_UP @ Y_UP.T, torch.eye(3)) and float(torch.det(Y_UP)) == 1.0
+    assert torch.allclose(Y_UP.T @ torch.tensor([0.0, -9.81, 0.0]), torch.tensor([0.0, 0.0, -9.81]))
+
+
+def test_a_scene_at_another_spacing_is_refused():
+    from baselines.cconv.simulator import CConvSimulator
+
+    sim = CConvSimulator(CConvNet(), "cconv_original", "test", Y_UP)
+    cfg = _compose("scene=dam_small", "scene.params.l0=0.04")
+    with pytest.raises(RolloutError, match=r"l0 = 0\.04"):
+        sim.reset(build_initial_state(cfg))
