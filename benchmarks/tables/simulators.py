@@ -49,11 +49,16 @@ REPO = Path(__file__).resolve().parents[2]
 # the default of the ``weights: authors`` rows, a cross-check of our scheme against weights nobody here
 # trained. Where it is missing those rows fail and are reported as failed; the other rows run.
 AUTHORS_WEIGHTS = REPO.parent / "shared" / "reference" / "fgn_original" / "checkpoints"
+# DeepLagrangianFluids' published CConv network (CDLA-Permissive-1.0), kept there likewise: the default of
+# the ``weights: dlf`` rows (model=cconv_original).
+DLF_WEIGHTS = REPO.parent / "shared" / "reference" / "cconv_original" / "pretrained_model_weights.pt"
+PUBLISHED = {"authors": AUTHORS_WEIGHTS, "dlf": DLF_WEIGHTS}
 
 WEIGHTS = {
     "none": "the row's own config (MPS; a model that finds its own weights)",
     "fgn": "--weights DIR when given (FGN's three checkpoints), else the model's default (shipped weights)",
     "authors": "the FGN authors' published networks (AUTHORS_WEIGHTS)",
+    "dlf": "DeepLagrangianFluids' published CConv network (DLF_WEIGHTS)",
 }
 
 # Table 3's cases: the row files ``table3_<case>_<key>``.
@@ -99,8 +104,8 @@ class Simulator:
 
     def model_overrides(self, weights_dir: str | None) -> list[str]:
         """The ``model.weights`` override of this simulator's rows (``weights_dir``: ``--weights``)."""
-        if self.weights == "authors":  # relative when possible: the commands in the report stay portable
-            return [f"model.weights={os.path.relpath(AUTHORS_WEIGHTS)}"]
+        if self.weights in PUBLISHED:  # relative when possible: the commands in the report stay portable
+            return [f"model.weights={os.path.relpath(PUBLISHED[self.weights])}"]
         if self.weights == "fgn" and weights_dir:
             return [f"model.weights={weights_dir}"]
         return []
