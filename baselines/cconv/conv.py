@@ -20,7 +20,9 @@ weight of pair ``(i, j)`` at row ``i``, column ``j * cells_b + cell``. A layer i
 ``sum_b M_b @ (f @ K_b).reshape(N_in * cells_b, C_out)``: per block one dense product (the FLOPs of the
 layer) and one sparse product over the ``8 E`` pair-corner weights. The pairs come sorted by output row, so
 the CSR rows need no sort; the blocks bound the memory to ``N_in * cells_b * C_out`` floats (see
-``benchmarks/results/cconv_layer.md`` for the time against the dense products' FLOP bound).
+``benchmarks/results/cconv_layer.md`` for the time against the dense products' FLOP bound). A layer with
+few input channels (``4 C_in <= C_out``, DeepLagrangianFluids' first) scatters instead: the ``8 E`` weighted
+inputs into an ``(N_out, cells * C_in)`` array, then one dense product with the kernel.
 Like Open3D's op, no gradient flows to the positions (only to the features, the kernel and the bias).
 """
 
@@ -133,6 +135,9 @@ class ConvGeometry:
         n_out: number of output points.
         cells: kernel cells, ``k_x k_y k_z``.
         num_neighbors: (N_out,) float pairs per output point (DeepLagrangianFluids' loss weight).
+        pair_rows: (E, 8) ``i * cells + cell`` of each pair's 8 corners (the scatter form's rows).
+        pair_inputs: (E,) input point ``j`` of each pair.
+        pair_weights: (E, 8) ``window_ij * w_cell(u_ij)`` of each pair's corners.
     """
 
     chunks: tuple[Tensor, ...]
@@ -141,6 +146,9 @@ class ConvGeometry:
     n_out: int
     cells: int
     num_neighbors: Tensor
+    pair_rows: Tensor
+    pair_inputs: Tensor
+    pair_weights: Tensor
 
 
 def conv_pairs(
@@ -217,16 +225,19 @@ def conv_geometry(
             j, i, rel, dist = j[keep], i[keep], rel[keep], dist[keep]
     coord = filter_coordinates(rel, radius, kernel_size, mapping)
     # Trilinear weights with Open3D's clamping; the lower corner stops at k - 2 so the 8 cells of a pair are
-    # distinct (the same weights: at x = k - 1 the upper corner takes all of it)
+    # distinct (the same weights: at x = k - 1 the upper corner takes all of it). Built from (E, 2) factors,
+    # not (E, 8, 3) arrays: at 400k pairs those cost more in allocation than in arithmetic.
     size = torch.tensor(kernel_size[::-1], device=coord.device)  # (k_x, k_y, k_z), as coord
     lower = torch.minimum(coord.floor().long().clamp_min(0), size - 2)
     frac = (coord - lower).clamp(0, 1)
-    corner = torch.tensor(
-        [[a, b, c] for c in (0, 1) for b in (0, 1) for a in (0, 1)], device=coord.device
-    )  # (8, 3) offsets (x, y, z), x fastest as Open3D's order
-    idx = lower[:, None, :] + corner[None]  # (E, 8, 3)
-    cell = (idx[..., 2] * ky + idx[..., 1]) * kx + idx[..., 0]  # kernel array (k_z, k_y, k_x) row-major
-    w = torch.where(corner[None].bool(), frac[:, None, :], 1 - frac[:, None, :]).prod(-1)  # (E, 8)
+    lx, ly, lz = lower.unbind(1)
+    base = (lz * ky + ly) * kx + lx  # the lower corner's cell in the kernel array (k_z, k_y, k_x)
+    offsets = torch.tensor(
+        [(c * ky + b) * kx + a for c in (0, 1) for b in (0, 1) for a in (0, 1)], device=coord.device
+    )  # the 8 corners, x fastest (Open3D's order)
+    cell = base[:, None] + offsets[None]  # (E, 8)
+    fx, fy, fz = (torch.stack([1 - f, f], dim=1) for f in frac.unbind(1))  # (E, 2) each
+    w = (fz[:, :, None, None] * fy[:, None, :, None] * fx[:, None, None, :]).reshape(-1, 8)
     if window is not None:
         w = w * window((dist * dist) / (radius * radius))[:, None]
     counts = torch.bincount(i, minlength=n_out)
@@ -253,7 +264,8 @@ def conv_geometry(
                     crow, cols, vals, size=(n_out, n_in * (hi - lo)), check_invariants=False
                 )
             )
-    return ConvGeometry(tuple(chunks), tuple(splits), n_in, n_out, cells, num_neighbors)
+    rows = i[:, None] * cells + cell
+    return ConvGeometry(tuple(chunks), tuple(splits), n_in, n_out, cells, num_neighbors, rows, j, w)
 
 
 class ContinuousConv(nn.Module):
@@ -311,6 +323,17 @@ class ContinuousConv(nn.Module):
             raise ValueError(
                 f"ContinuousConv: geometry of {geometry.cells} cells for a {self.kernel_size} kernel"
             )
+        if 4 * self.in_channels <= self.filters:
+            # Few input channels (DeepLagrangianFluids' first layer: 4 -> 32): scattering the E x 8 weighted
+            # inputs to (N_out * cells, C_in) moves C_in numbers per corner, gathering moves C_out
+            # (benchmarks/results/cconv_layer.md: 4 -> 32)
+            src = (
+                geometry.pair_weights[..., None] * features[geometry.pair_inputs][:, None, :]
+            )  # (E, 8, C_in)
+            spread = features.new_zeros(geometry.n_out * geometry.cells, self.in_channels)
+            spread = spread.index_add(0, geometry.pair_rows.flatten(), src.reshape(-1, self.in_channels))
+            out = spread.reshape(geometry.n_out, -1) @ self.kernel.reshape(-1, self.filters)
+            return out + self.bias
         kernel = self.kernel.reshape(geometry.cells, self.in_channels, self.filters)
         out = None
         blocks = itertools.pairwise(geometry.cell_splits)
