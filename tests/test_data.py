@@ -18,6 +18,7 @@ from lagfluid.data.datasets import (
     AdvectionSamples,
     CollisionSamples,
     PressureSamples,
+    StepWindows,
     TrajectoryWindows,
     load_metadata,
 )
@@ -425,3 +426,27 @@ def test_cli_generate_with_the_issue_command(tmp_path):
     assert out.returncode == 0, out.stderr
     meta = load_metadata(tmp_path / "d")
     assert meta["num_scenes"] == 2 and meta["steps"] == 3 and meta["counts"]["train"]["scenes"] == 2
+
+
+def test_next_steps_are_the_solver_steps_after_each_sample(tmp_path):
+    # sample_every=2, next_steps=3: a sample's 2nd next step is the next frame; the steps stop at 8, so the
+    # last sample (step 6) has only 2 of its 3 and is left out
+    out = tmp_path / "next"
+    _, meta = _generate(out, "data.sample_every=2", "data.next_steps=3", "steps=8", "data.num_scenes=1")
+    assert meta["next_steps"] == 3
+    with h5py.File(out / meta["scenes"][0]["file"]) as f:
+        nxt, frames = f["samples/next/position"][()], f["00000/position"][()]
+        assert nxt.shape[:2] == (3, 3) and f["samples/step"].shape == (4,)
+        for s in range(3):
+            assert np.array_equal(nxt[s, 1], frames[s + 1])
+        assert not np.array_equal(nxt[0, 0], frames[0]) and not np.array_equal(nxt[0, 0], nxt[0, 1])
+    windows = StepWindows(out, None, steps=2, boundary_radius=None)
+    item = windows[1]
+    assert len(windows) == 3 and item.y.shape == (64, 2, 3)
+    assert torch.equal(item.y[:, 1], torch.from_numpy(frames[2])) and item.bounds.shape == (1, 2, 3)
+    assert torch.equal(item.pos[:64], torch.from_numpy(frames[1]))
+
+
+def test_step_windows_name_a_dataset_without_next_steps(dataset):
+    with pytest.raises(TrajectoryFileError, match=r"data\.next_steps=2"):
+        StepWindows(dataset[0], "train", steps=2)

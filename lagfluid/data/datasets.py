@@ -393,3 +393,63 @@ class TrajectoryWindows(_SceneDataset):
             **extra,
             **self._scene_fields(file),
         )
+
+
+class StepWindows(_SceneDataset):
+    """Windows of consecutive solver steps: a sample's state and its next ``K`` steps (``samples/next``).
+
+    For models that step by the solver's own ``dt`` and train on short unrolls (CConv: K = 2, as
+    DeepLagrangianFluids). Needs a dataset generated with ``data.next_steps >= K``. Item ``(scene, s)``:
+    ``pos``, ``vel`` (N, 3) the state of sample s's step with the boundary within reach, ``ptype`` (N,),
+    ``y`` (Nf, K, 3) the fluid positions of the next K steps; graph-level ``dt``, ``step``, ``bounds``
+    (1, 2, 3) when the scene has a tank, and the scene fields.
+
+    Args:
+        root, split, transform, boundary_radius: as the other datasets.
+        steps: K, the steps after the state each item holds.
+
+    Raises:
+        TrajectoryFileError: a scene file without ``samples/next`` or with fewer than ``steps`` of them.
+    """
+
+    def __init__(
+        self,
+        root: str | os.PathLike,
+        split: str | None = "train",
+        transform: Any = None,
+        boundary_radius: float | Literal["default"] | None = "default",
+        steps: int = 2,
+    ) -> None:
+        if steps < 1:
+            raise LagfluidError(f"steps must be >= 1, got {steps}")
+        self.steps = steps
+        super().__init__(root, split, transform, boundary_radius)
+
+    def _count(self, info: SceneInfo) -> int:
+        with h5py.File(info.path, "r") as f:
+            nxt = f["samples"].get("next/position")
+            if nxt is None or nxt.shape[1] < self.steps:
+                have = 0 if nxt is None else nxt.shape[1]
+                raise TrajectoryFileError(
+                    f"{info.path} stores {have} solver steps after each sample, this model needs "
+                    f"{self.steps}: generate the dataset with data.next_steps={self.steps}"
+                )
+            return int(nxt.shape[0])
+
+    def _item(self, file: int, local: int) -> Data:
+        f = self._h5(file)
+        g, s = f[GROUP], f["samples"]
+        frame = int(s["frame"][local])
+        pos, vel = g["position"][frame], g["velocity"][frame]
+        b_pos, b_type = self._near_boundary(file, pos)
+        bounds = self.infos[file].attrs.get("bounds")
+        extra = {}
+        if isinstance(bounds, np.ndarray) and bounds.shape == (2, 3):
+            extra["bounds"] = torch.from_numpy(bounds.astype(np.float32)).unsqueeze(0)
+        return Data(
+            **_with_boundary(pos, vel, b_pos, b_type),
+            y=torch.from_numpy(s["next/position"][local, : self.steps]).transpose(0, 1).contiguous(),
+            step=torch.tensor([int(s["step"][local])]),
+            **extra,
+            **self._scene_fields(file),
+        )

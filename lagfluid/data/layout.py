@@ -36,6 +36,10 @@ particles, ``T`` trajectory frames, ``S = ceil(steps / k)`` samples for ``k = sa
         collision/delta_velocity (C, Nc, 3) f4   label v** - v* given by the exact CollisionRule
         collision/system (C,) i8, collision/step (C,) i8   which system, which of its steps
         collision/boundary_position (Ncb, 3) f4, collision/boundary_type (Ncb,) i1   its static floor
+        next/position (S', K, Nf, 3) f4   optional (data.next_steps = K > 0): the fluid positions of the K
+                                          solver steps after sample s's step (n + 1 .. n + K), for models
+                                          that step by the solver's dt and train on K-step windows (CConv:
+                                          K = 2); S' <= S, the samples whose K steps the run reached
         attrs: format_version (samples layout), count, dt, complete; collision/: restitution,
                re_collision, num_systems, steps
 
@@ -228,10 +232,22 @@ def append_rows(ds: h5py.Dataset, values: np.ndarray) -> None:
 
 
 class SampleWriter:
-    """Appends the one-step samples of a scene to ``/samples`` of the open scene file."""
+    """Appends the one-step samples of a scene to ``/samples`` of the open scene file.
 
-    def __init__(self, group: h5py.Group, n_fluid: int, dt: float) -> None:
-        self.group, self.n_fluid = group, n_fluid
+    Args:
+        group: the file's ``/samples`` group.
+        n_fluid: Nf.
+        dt: the solver's time step, s.
+        next_steps: K > 0 also stores each sample's next K solver steps' fluid positions (``next/``).
+    """
+
+    def __init__(self, group: h5py.Group, n_fluid: int, dt: float, next_steps: int = 0) -> None:
+        self.group, self.n_fluid, self.next_steps = group, n_fluid, int(next_steps)
+        self._pending: dict[int, list[np.ndarray]] = {}  # sample step -> positions of its next steps so far
+        if self.next_steps:
+            nxt = group.create_group("next")
+            nxt.attrs["steps"] = self.next_steps
+            self.next_pos = appendable(nxt, "position", (self.next_steps, n_fluid, 3), "f4")
         group.attrs.update(format_version=SAMPLES_FORMAT_VERSION, dt=dt, complete=False, count=0)
         self.step = appendable(group, "step", (), "i8", 1024)
         self.frame = appendable(group, "frame", (), "i8", 1024)
@@ -246,6 +262,18 @@ class SampleWriter:
         self.density = appendable(prs, "number_density", (), "f4", 1 << 16)
         self.pressure = appendable(prs, "pressure", (), "f4", 1 << 16)
         self.count = 0
+
+    def after_step(self, step: int, fluid_pos: torch.Tensor) -> None:
+        """Keep ``fluid_pos`` (Nf, 3) of solver step ``step`` for the samples it is one of the next steps of.
+
+        Call after every step, in order; a sample's row is written when its last next step arrives (the rows
+        stay in sample order). Does nothing without ``next_steps``.
+        """
+        for start in list(self._pending):
+            if 0 < step - start <= self.next_steps:
+                self._pending[start].append(fluid_pos.detach().cpu().numpy().astype(np.float32, copy=False))
+            if len(self._pending[start]) == self.next_steps:
+                append_rows(self.next_pos, np.stack(self._pending.pop(start))[None])
 
     def append(self, step: int, fields: Any) -> None:
         """Store the sample of solver step ``step`` from that step's recorded intermediates.
@@ -269,6 +297,8 @@ class SampleWriter:
         append_rows(self.density, np32(fields.number_density)[solved])
         append_rows(self.pressure, np32(fields.pressure_unclamped)[solved])
         append_rows(self.offsets, np.array([self.offsets[-1] + len(solved)], np.int64))
+        if self.next_steps:
+            self._pending[step] = []
         self.count += 1
         self.group.attrs["count"] = self.count
         self.group.file.flush()

@@ -72,6 +72,7 @@ def write_metadata(spec: DataSpec, generation_seconds: float | None = None) -> d
         "num_scenes": spec.num_scenes,
         "steps": spec.steps,
         "sample_every": spec.sample_every,
+        "next_steps": spec.next_steps,
         "write_every": spec.sample_every,
         "sequence_length": infos[0].frames,
         "dt": float(first["dt"]),

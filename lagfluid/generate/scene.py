@@ -91,13 +91,14 @@ def generate_scene(cfg: DictConfig, spec: DataSpec, index: int) -> Path:
     )
     start = time.perf_counter()
     try:
-        samples = SampleWriter(writer.file.create_group("samples"), nf, params.dt)
+        samples = SampleWriter(writer.file.create_group("samples"), nf, params.dt, spec.next_steps)
         guard = Guard(float(cfg.solver.guard.max_courant), int(cfg.solver.guard.check_every))
         every = spec.sample_every
 
         def keep_sample(before: ParticleState, after: ParticleState, fields: Any) -> None:
             if fields is not None:
                 samples.append(before.step, fields)
+            samples.after_step(after.step, after.pos[:nf])
 
         _, record = rollout(
             sim,

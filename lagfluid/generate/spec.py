@@ -52,6 +52,7 @@ class DataSpec:
         num_scenes: number of scenes.
         steps: solver steps per scene.
         sample_every: k: frames and samples every k-th step.
+        next_steps: K: also store the fluid positions of the K solver steps after each sample (0: none).
         seed: scene k is built with ``seed + k``.
         scene_index: only this scene (multirun), or None for all.
         splits: fraction of the scenes per split.
@@ -71,6 +72,7 @@ class DataSpec:
     num_scenes: int
     steps: int
     sample_every: int
+    next_steps: int
     seed: int
     scene_index: int | None
     splits: dict[str, float]
@@ -91,6 +93,9 @@ class DataSpec:
         for key, value in (("num_scenes", num_scenes), ("steps", steps), ("data.sample_every", every)):
             if value < 1:
                 raise LagfluidError(f"{key} must be >= 1, got {value}")
+        next_steps = int(data.get("next_steps") or 0)
+        if next_steps < 0:
+            raise LagfluidError(f"data.next_steps must be >= 0, got {next_steps}")
         seed = int(data["seed"])
         if seed < 0:
             raise LagfluidError(f"data.seed must be >= 0, got {seed}")
@@ -127,6 +132,7 @@ class DataSpec:
             num_scenes=num_scenes,
             steps=steps,
             sample_every=every,
+            next_steps=next_steps,
             seed=seed,
             scene_index=None if index is None else int(index),
             splits=splits,
@@ -180,4 +186,6 @@ class DataSpec:
             "dtype": str(self.dtype),
             "samples_format": SAMPLES_FORMAT_VERSION,
         }
+        if self.next_steps:  # only then: the files of datasets without them keep their fingerprints
+            content["next_steps"] = self.next_steps
         return hashlib.sha256(json.dumps(content, sort_keys=True, default=str).encode()).hexdigest()[:16]
