@@ -1,4 +1,4 @@
-"""The continuous convolution layer (baselines/cconv): accuracy against Open3D's op, time against its FLOP bound.
+"""The continuous convolution layer (baselines/cconv): accuracy against Open3D, time against its FLOP bound.
 
 Points: a jittered cubic lattice of ``--particles`` fluid particles at DeepLagrangianFluids' spacing
 (0.05 m, filter radius 0.1125 m: ~40 neighbours each), the inside of a body of water.

@@ -33,6 +33,7 @@ import logging
 import math
 import os
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -53,8 +54,21 @@ log = logging.getLogger(__name__)
 
 
 # ---------------------------------------------------------------------------------------------- trainer
-def learning_rate(iteration: int, iterations: int, lr_start: float, lr_end: float) -> float:
-    """Exponential decay from ``lr_start`` (iteration 0) to ``lr_end`` (the last iteration)."""
+def learning_rate(
+    iteration: int,
+    iterations: int,
+    lr_start: float,
+    lr_end: float,
+    milestones: Sequence[int] | None = None,
+    gamma: float = 0.5,
+) -> float:
+    """Exponential decay from ``lr_start`` (iteration 0) to ``lr_end`` (the last iteration).
+
+    With ``milestones``: steps instead, ``lr_start * gamma^k`` after the k-th milestone iteration
+    (DeepLagrangianFluids: halved at 25k, 30k, 35k, 40k and 45k of 50k); ``lr_end`` is then unused.
+    """
+    if milestones:
+        return lr_start * gamma ** sum(iteration >= int(m) for m in milestones)
     frac = iteration / max(iterations - 1, 1)
     return lr_start * math.exp(frac * math.log(lr_end / lr_start))
 
@@ -146,6 +160,14 @@ def train_one(cfg: DictConfig, trainable: Trainable, out_dir: Path) -> dict[str,
     }
     if loss_name != "mse":  # only then: checkpoints trained before the option existed keep their fingerprint
         identity["loss"] = {"name": loss_name, "delta": delta}
+    milestones = [int(m) for m in tcfg.get("lr_milestones") or []]
+    adam_eps = float(tcfg.get("adam_eps") or 1e-8)
+    if milestones or adam_eps != 1e-8:  # only then, likewise
+        identity["schedule"] = {
+            "milestones": milestones,
+            "gamma": float(tcfg.get("lr_gamma", 0.5)),
+            "eps": adam_eps,
+        }
     init_from = tcfg.get("init_from")
     if init_from:  # only then, likewise
         identity["init_from"] = str(Path(str(init_from)).resolve())
@@ -155,7 +177,7 @@ def train_one(cfg: DictConfig, trainable: Trainable, out_dir: Path) -> dict[str,
     torch.manual_seed(int(cfg.seed))
     device = torch.device(str(cfg.device))
     net = trainable.build_network()
-    optimizer = torch.optim.Adam(net.parameters(), lr=float(tcfg.lr_start))
+    optimizer = torch.optim.Adam(net.parameters(), lr=float(tcfg.lr_start), eps=adam_eps)
     start_step, elapsed, stats = 0, 0.0, None
     if init_from and not ckpt_path.is_file():  # fine-tuning: start from trained weights and their statistics
         init = read_checkpoint(Path(str(init_from)) / f"{kind}.pt", kind, model=trainable.model)
@@ -239,7 +261,14 @@ def train_one(cfg: DictConfig, trainable: Trainable, out_dir: Path) -> dict[str,
                 if step >= iterations:
                     break
                 batch = batch.to(device)
-                lr = learning_rate(step, iterations, float(tcfg.lr_start), float(tcfg.lr_end))
+                lr = learning_rate(
+                    step,
+                    iterations,
+                    float(tcfg.lr_start),
+                    float(tcfg.lr_end),
+                    milestones,
+                    float(tcfg.get("lr_gamma", 0.5)),
+                )
                 for group in optimizer.param_groups:
                     group["lr"] = lr
                 pred, target = trainable.predict(net, batch)

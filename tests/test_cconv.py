@@ -374,3 +374,86 @@ def test_a_scene_at_another_spacing_is_refused():
     cfg = _compose("scene=dam_small", "scene.params.l0=0.04")
     with pytest.raises(RolloutError, match=r"l0 = 0\.04"):
         sim.reset(build_initial_state(cfg))
+
+
+# --------------------------------------------------------------------------------------------- training
+@pytest.fixture(scope="module")
+def step_data(tmp_path_factory):
+    from lagfluid.generate import generate
+
+    out = tmp_path_factory.mktemp("cconv_data")
+    generate(
+        _compose(
+            "task=generate",
+            "scene=random",
+            "data=tiny",
+            "data.next_steps=2",
+            f"data.out_dir={out}",
+            "progress=false",
+        )
+    )
+    return out
+
+
+def test_the_trainable_predicts_two_steps_and_its_loss_is_dlfs(step_data):
+    from torch_geometric.data import Batch
+
+    from baselines.cconv.trainable import CConvTrainable, dlf_loss
+
+    trainable = CConvTrainable(_compose("model=cconv"))
+    train, _ = trainable.datasets(step_data)
+    net = trainable.build_network()
+    stats = trainable.fit_statistics(net, [train[0]])
+    assert stats["timestep"] == pytest.approx(0.002) and stats["particle_radius"] == pytest.approx(0.025)
+    batch = Batch.from_data_list([train[0], train[1]])
+    pred, target = trainable.predict(net, batch)
+    nf = int((batch.ptype == 1).sum())
+    assert pred.shape == target.shape == (nf, 2, 4) and torch.equal(pred[..., 3], target[..., 3])
+    # the loss of a perfect prediction is the epsilon's alone (1e-9 under the root); of a 1 mm error,
+    # 128 * w * 1e-3^0.5
+    weight = float(target[..., 3].mean())
+    assert float(dlf_loss(target, target)) == pytest.approx(128 * weight * 1e-9**0.25, rel=1e-4)
+    shifted = target.clone()
+    shifted[..., 0] += 1e-3
+    expected = 128 * weight * (1e-6 + 1e-9) ** 0.25
+    assert float(dlf_loss(shifted, target)) == pytest.approx(expected, rel=1e-4)
+
+
+def test_a_gravity_other_than_the_datas_is_refused(step_data):
+    from baselines.cconv.trainable import CConvTrainable
+
+    trainable = CConvTrainable(_compose("model=cconv", "model.cconv.gravity=[0.0,-9.81,0.0]"))
+    train, _ = trainable.datasets(step_data)
+    with pytest.raises(ConfigError, match="gravity"):
+        trainable.fit_statistics(trainable.build_network(), [train[0]])
+
+
+def test_tiny_training_lowers_the_loss(step_data, tmp_path):
+    import csv
+
+    from lagfluid.train import train
+
+    cfg = _compose(
+        "task=train",
+        "model=cconv",
+        "train=cconv_cpu",
+        "data=tiny",
+        "data.next_steps=2",
+        f"data.out_dir={step_data}",
+        f"out_dir={tmp_path}",
+        "progress=false",
+        "train.iterations.cconv=30",
+        "train.log_every=10",
+        "train.lr_milestones=[20]",
+    )
+    train(cfg)
+    rows = list(csv.DictReader(open(tmp_path / "cconv_loss.csv")))
+    losses = [float(r["train_loss"]) for r in rows]
+    assert len(losses) == 3 and losses[-1] < losses[0]
+    sim = check_simulator(
+        __import__("baselines.cconv.simulator", fromlist=["build_simulator"]).build_simulator(
+            _compose("model=cconv", f"model.weights={tmp_path}")
+        ),
+        "cconv",
+    )
+    assert sim.dt == 0.002 and sim.parameters == 692_902

@@ -171,7 +171,8 @@ def test_the_built_in_simulators_come_from_their_row_files_in_the_papers_order()
     # every table, its weights passed from beside the checkout
     cconv = sims[7]
     assert (cconv.key, cconv.model, cconv.weights) == ("cconv_original", "cconv_original", "dlf")
-    assert cconv.rows == ("table2_cconv_original", "table3_dam_cconv_original", "table3_waterfall_cconv_original")
+    names = ("table2_cconv_original", "table3_dam_cconv_original", "table3_waterfall_cconv_original")
+    assert cconv.rows == names
     assert cconv.model_overrides(None)[0].endswith("cconv_original/pretrained_model_weights.pt")
     assert [s.key for s in all_simulators(["fgn_original", "mps"])] == ["mps", "fgn_original"]
     with pytest.raises(ConfigError, match=r"no simulator 'nope' in the tables; available: mps, fgn, "):

@@ -27,13 +27,16 @@ SURFACE_THRESHOLD = 2.5
 
 
 @torch.no_grad()
-def surface_points(boundary_pos: Tensor, l0: float, offset: float = 0.5) -> tuple[Tensor, Tensor, Tensor]:
+def surface_points(
+    boundary_pos: Tensor, l0: float, offset: float = 0.5, batch: Tensor | None = None
+) -> tuple[Tensor, Tensor, Tensor]:
     """The surface of a set of boundary particles (module doc).
 
     Args:
         boundary_pos: (B, 3) positions of the static boundary particles (wall and dummy), m.
         l0: particle spacing, m.
         offset: how far the points are moved along their normals, in l0.
+        batch: optional (B,) scene id of each particle (scenes of a batch do not see each other).
 
     Returns:
         points: (S, 3) surface points, m.
@@ -43,7 +46,7 @@ def surface_points(boundary_pos: Tensor, l0: float, offset: float = 0.5) -> tupl
     if boundary_pos.shape[0] == 0:
         empty = boundary_pos.new_zeros(0, 3)
         return empty, empty, torch.zeros(0, dtype=torch.long, device=boundary_pos.device)
-    edges = radius_graph(boundary_pos, SURFACE_RADIUS * l0)
+    edges = radius_graph(boundary_pos, SURFACE_RADIUS * l0, batch=batch)
     rel = boundary_pos[edges[0]] - boundary_pos[edges[1]]
     g = torch.zeros_like(boundary_pos).index_add_(0, edges[1], rel)
     size = g.norm(dim=1)

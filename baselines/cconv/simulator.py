@@ -11,6 +11,7 @@ velocities are rotated into its frame and back (z up here); ``model=cconv`` is t
 
 from __future__ import annotations
 
+import json
 import math
 import time
 from collections.abc import Sequence
@@ -21,7 +22,7 @@ import torch
 from torch import Tensor
 
 from lagfluid.errors import ConfigError, RolloutError
-from lagfluid.models.checkpoint import CheckpointError
+from lagfluid.models.checkpoint import CheckpointError, read_checkpoint
 from lagfluid.state import ParticleState
 
 from .boundary import surface_points
@@ -213,3 +214,39 @@ def build_original(cfg: Any) -> CConvSimulator:
     weight = cfg.model.get("surface_weight")
     weight = DLF_SURFACE_WEIGHT if weight is None else float(weight)
     return CConvSimulator(net, "cconv_original", str(weights), Y_UP, float(cfg.model.surface_offset), weight)
+
+
+SHIPPED = Path(__file__).resolve().parent / "weights"
+"""The shipped weights of ``model=cconv`` (``cconv.pt``) and their model card, once trained."""
+
+
+def load_cconv(
+    path: str | Path, device: str = "cpu", dtype: torch.dtype = torch.float32
+) -> tuple[CConvNet, float]:
+    """The :class:`CConvNet` of a lagfluid checkpoint ``path`` (``cconv.pt``) and its surface offset (l0).
+
+    Raises:
+        CheckpointError: a missing or unreadable file, or the network of another model.
+    """
+    ckpt = read_checkpoint(path, kind="cconv", model="cconv")
+    net = CConvNet(**ckpt["options"])
+    net.load_state_dict(ckpt["state_dict"])
+    identity = json.loads(ckpt.get("meta", {}).get("identity", "{}"))
+    return net.to(device=torch.device(device), dtype=dtype), float(identity.get("surface_offset", 0.5))
+
+
+def build_simulator(cfg: Any) -> CConvSimulator:
+    """``model=cconv``: the network of ``model.weights/cconv.pt`` (null: the shipped ones), our axes and dt.
+
+    Raises:
+        CheckpointError: no weights there (none are shipped before a CPU training has been run).
+    """
+    folder = Path(str(cfg.model.weights)) if cfg.model.get("weights") else SHIPPED
+    path = folder / "cconv.pt"
+    if not path.is_file():
+        raise CheckpointError(
+            f"no CConv weights at {path}: train them (python -m lagfluid.run task=train model=cconv "
+            "train=cconv_cpu data=cpu data.next_steps=2) and pass model.weights=<that out_dir>"
+        )
+    net, offset = load_cconv(path, str(cfg.device), getattr(torch, str(cfg.dtype)))
+    return CConvSimulator(net, "cconv", str(path), torch.eye(3), offset)

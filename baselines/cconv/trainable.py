@@ -1,0 +1,146 @@
+"""CConv's one trainable: DeepLagrangianFluids' two-step unroll on windows of consecutive solver steps.
+
+A training item (:class:`~lagfluid.data.datasets.StepWindows`, a dataset generated with
+``data.next_steps=2``) is a sampled MPS state ``(x, v)`` with the boundary and the fluid positions of the
+next two solver steps. Per batch, as DeepLagrangianFluids' ``train_network_torch.py``:
+
+1. the boundary particles become surface points with normals (:func:`baselines.cconv.boundary.surface_points`,
+   per scene of the batch), as in rollouts;
+2. two steps of the network, the second from the first's predicted positions and velocities (the gradient
+   flows through both; none through the pair geometry, as Open3D's op gives none);
+3. loss ``128 * sum_k 0.5 * mean_i exp(-n_i / 40) |x_pred - x_true|^0.5`` with ``n_i`` the fluid neighbours
+   of particle i at step k (fewer neighbours, the free surface, weigh more).
+
+There are no normalisation statistics (their network has none); :meth:`CConvTrainable.fit_statistics`
+checks that the network's time step, particle radius and gravity are the data's.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import torch
+from omegaconf import OmegaConf
+from torch import Tensor, nn
+from torch_geometric.data import Batch, Data
+
+from lagfluid.data.datasets import StepWindows
+from lagfluid.errors import ConfigError, LagfluidError
+from lagfluid.state import ParticleType
+
+from .boundary import surface_points
+from .network import CConvNet
+
+NAME = "cconv"
+UNROLL = 2
+"""Steps per training window (DeepLagrangianFluids: 2, each loss weighted 0.5)."""
+NEIGHBOR_SCALE = 40.0
+"""The loss weight ``exp(-n / 40)`` of a particle with ``n`` fluid neighbours (DeepLagrangianFluids)."""
+LOSS_SCALE = 128.0
+"""DeepLagrangianFluids scales the loss by 128 (the inverse of the network's output scale)."""
+
+
+def dlf_loss(prediction: Tensor, target: Tensor) -> Tensor:
+    """DeepLagrangianFluids' loss of ``(Nf, K, 4)`` positions + neighbour weight (see :meth:`predict`).
+
+    ``LOSS_SCALE * sum_k (1 / K) mean_i w_ik (|x_pred - x_true|^2 + 1e-9)^0.25``, ``w = exp(-n / 40)``.
+    """
+    distance = (((prediction[..., :3] - target[..., :3]) ** 2).sum(-1) + 1e-9) ** 0.25
+    per_step = (target[..., 3] * distance).mean(dim=0)  # (K,)
+    return LOSS_SCALE * per_step.mean()
+
+
+def _scalar(values: Tensor, name: str) -> float:
+    unique = values.unique()
+    if unique.numel() != 1:
+        raise LagfluidError(f"a CConv batch mixes {name} values {unique.tolist()}; train on one dataset")
+    return float(unique[0])
+
+
+class CConvTrainable:
+    """:class:`~lagfluid.models.trainable.Trainable` of ``model=cconv`` (module doc).
+
+    Reads ``cfg.model.cconv`` (the :class:`CConvNet` options, with its ``timestep``, ``particle_radius`` and
+    ``gravity``: the data's) and ``cfg.model.surface_offset``.
+    """
+
+    name = NAME
+    model = NAME
+    loss = staticmethod(dlf_loss)
+
+    def __init__(self, cfg: Any) -> None:
+        self.options = OmegaConf.to_container(cfg.model[NAME], resolve=True)
+        self.surface_offset = float(cfg.model.surface_offset)
+
+    # ------------------------------------------------------------------------ Trainable
+    def datasets(self, data_dir: Path) -> tuple[Any, Any]:
+        """Windows of a state and its next two solver steps, train and valid splits."""
+        return StepWindows(data_dir, "train", steps=UNROLL), StepWindows(data_dir, "valid", steps=UNROLL)
+
+    def build_network(self) -> nn.Module:
+        """A fresh :class:`CConvNet` from the options."""
+        return CConvNet(**self.options)
+
+    def fit_statistics(self, net: nn.Module, items: Sequence[Data]) -> dict[str, Any]:
+        """No statistics to fit: checks the network's dt, particle radius and gravity against the data.
+
+        Raises:
+            ConfigError: the data were made at another dt, spacing or gravity than ``model.cconv`` says.
+        """
+        dt = _scalar(torch.cat([item.dt for item in items]), "dt")
+        l0 = _scalar(torch.cat([item.l0 for item in items]), "l0")
+        gravity = torch.cat([item.gravity for item in items]).unique(dim=0)
+        checks = {
+            "timestep": (net.timestep, dt),
+            "particle_radius": (net.particle_radius, l0 / 2),
+        }
+        for key, (ours, data) in checks.items():
+            if abs(ours - data) > 1e-6 * abs(data):
+                raise ConfigError(f"model.cconv.{key}={ours}, the data's is {data}; set it to the data's")
+        if gravity.shape[0] != 1 or not torch.allclose(gravity[0], net.gravity.cpu(), atol=1e-5):
+            raise ConfigError(
+                f"model.cconv.gravity={net.gravity.tolist()}, the data's is {gravity.tolist()}; set it to "
+                "the data's (CConv takes gravity as a constant of the network)"
+            )
+        return {"timestep": dt, "particle_radius": l0 / 2, "gravity": gravity[0].tolist()}
+
+    def predict(self, net: nn.Module, batch: Batch) -> tuple[Tensor, Tensor]:
+        """Predicted and true fluid positions of the next two steps with the loss weight, (Nf, 2, 4) each.
+
+        Channels 0-2: positions (m); channel 3: ``exp(-n / 40)`` of the particle's fluid neighbours at that
+        step (the same in both tensors, so that :func:`dlf_loss` sees it).
+        """
+        fluid = batch.ptype == ParticleType.FLUID
+        sample = batch.batch if isinstance(batch, Batch) else torch.zeros_like(batch.ptype)
+        l0 = _scalar(batch.l0, "l0")
+        boundary = ~fluid
+        points, normals, rows = surface_points(batch.pos[boundary], l0, self.surface_offset, sample[boundary])
+        box_batch = sample[boundary][rows]
+        fluid_batch = sample[fluid]
+        pos, vel = batch.pos[fluid], batch.vel[fluid]
+        predicted, weights = [], []
+        for _ in range(UNROLL):
+            pos2, vel2 = net.integrate_pos_vel(pos, vel)
+            correction, neighbors = net.compute_correction(
+                pos2, vel2, None, points, normals, fluid_batch, box_batch
+            )
+            new_pos = pos2 + correction
+            vel = (new_pos - pos) / net.timestep
+            pos = new_pos
+            predicted.append(pos)
+            weights.append(torch.exp(-neighbors / NEIGHBOR_SCALE))
+        weight = torch.stack(weights, dim=1).unsqueeze(-1).detach()  # (Nf, 2, 1)
+        prediction = torch.cat([torch.stack(predicted, dim=1), weight], dim=-1)
+        target = torch.cat([batch.y[:, :UNROLL], weight], dim=-1)
+        return prediction, target
+
+    def identity(self) -> dict[str, Any]:
+        """The surface offset (it changes what the network sees of the walls)."""
+        return {"surface_offset": self.surface_offset}
+
+
+def build_trainables(cfg: Any) -> dict[str, CConvTrainable]:
+    """``model=cconv``'s trainables by name: one, the whole network."""
+    return {NAME: CConvTrainable(cfg)}
