@@ -7,7 +7,7 @@ from hydra import compose, initialize_config_dir
 from hydra.errors import ConfigCompositionException
 from omegaconf.errors import ConfigAttributeError
 
-from lagfluid.registry import UnknownNameError, get_simulator_factory
+from lagfluid.registry import UnknownNameError, available_simulators, get_simulator_factory, trainable_models
 from lagfluid.run import CONF_DIR, _group_names, available_models, check_command_line
 
 
@@ -74,6 +74,12 @@ def test_every_model_and_scene_composes_and_instantiates(model, scene, request):
     if model == "fgn_original":
         grid = request.getfixturevalue("authors_dam_grid")
         extra.append(f"model.weights={grid.parents[1] / 'checkpoints'}")
+    if model == "cconv_original":
+        weights = request.getfixturevalue("authors_dam_grid").parents[2] / "cconv_original"
+        extra.append(f"model.weights={weights / 'pretrained_model_weights.pt'}")
+    if model not in available_simulators():  # a model that trains but does not roll out yet (cconv)
+        assert model in trainable_models()
+        pytest.skip(f"model={model} has no simulator registered yet (only its trainable)")
     cfg = _compose(f"model={model}", f"scene={scene}", "steps=1", "dt=0.001", "device=cpu", "seed=3", *extra)
     assert cfg.model.name == model and cfg.scene.name == scene and cfg.dt == 0.001
     state = build_initial_state(cfg)
