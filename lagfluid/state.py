@@ -221,6 +221,35 @@ class ParticleState:
             bounds=self.bounds.clone() if self.bounds is not None else None,
         )
 
+    def advanced_fluid(
+        self, fluid_pos: Tensor, fluid_vel: Tensor, dt: float, pressure: Tensor | None = None
+    ) -> ParticleState:
+        """This state ``dt`` later with the fluid rows replaced; the boundary never moves.
+
+        What an end-to-end model's step returns (it predicts the fluid alone). Not validated (the rollout
+        guard checks the states a simulator steps to).
+
+        Args:
+            fluid_pos: (Nf, 3) new fluid positions.
+            fluid_vel: (Nf, 3) new fluid velocities.
+            dt: the step, s.
+            pressure: (N,) new pressure; None: zero (a model that predicts none).
+        """
+        nf = self.n_fluid
+        pos, vel = self.pos.clone(), self.vel.clone()
+        pos[:nf], vel[:nf] = fluid_pos.to(pos.dtype), fluid_vel.to(vel.dtype)
+        return ParticleState(
+            pos=pos,
+            vel=vel,
+            ptype=self.ptype,
+            params=self.params,
+            pressure=torch.zeros_like(self.pressure) if pressure is None else pressure,
+            time=self.time + dt,
+            step=self.step + 1,
+            bounds=self.bounds,
+            check=False,
+        )
+
     # ------------------------------------------------------------------ checks
     def validate(self) -> None:
         """Raise :class:`SceneError` naming the first inconsistency found."""

@@ -143,20 +143,8 @@ class CConvSimulator:
             "fluid_pairs": float(fluid_geo.num_neighbors.sum()),
             "surface_points": float(len(self._box)),
         }
-        out_pos, out_vel = state.pos.clone(), state.vel.clone()
-        out_pos[:nf] = (new_pos @ axes).to(state.dtype)  # axes is a rotation: its inverse is its transpose
-        out_vel[:nf] = (new_vel @ axes).to(state.dtype)
-        return ParticleState(
-            pos=out_pos,
-            vel=out_vel,
-            ptype=state.ptype,
-            params=state.params,
-            pressure=torch.zeros_like(state.pressure),
-            time=state.time + self.dt,
-            step=state.step + 1,
-            bounds=state.bounds,
-            check=False,
-        )
+        # axes is a rotation: its inverse is its transpose
+        return state.advanced_fluid(new_pos @ axes, new_vel @ axes, self.dt)
 
     def attributes(self) -> dict[str, Any]:
         """Where the weights came from, the step and the boundary surface."""

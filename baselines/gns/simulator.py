@@ -148,7 +148,7 @@ class GNSSimulator:
             acc = fluid_acceleration(net, pos, self._velocities.to(dtype), graph, bounds, radius)
             acc = net.acceleration.inverse(acc).to(state.dtype)
             fluid_pos, velocity = semi_implicit_euler(state.pos[:nf], self._velocities[:, -1], acc, dt)
-            new = self._advanced(state, fluid_pos, velocity, dt)
+            new = state.advanced_fluid(fluid_pos, velocity, dt)
             end = time.perf_counter()
             self._timings = {"neighbors": searched - start, "network": end - searched}
             self.last_info = {"graph_edges": float(graph.edge_index.shape[1])}
@@ -169,34 +169,10 @@ class GNSSimulator:
         self._mps = mps
         self._warm_frames -= 1
         velocity = (mps.pos[:nf] - state.pos[:nf]) / state.params.dt
-        new = self._advanced(state, mps.pos[:nf], mps.vel[:nf], state.params.dt, pressure=mps.pressure)
+        new = state.advanced_fluid(mps.pos[:nf], mps.vel[:nf], state.params.dt, pressure=mps.pressure)
         self._timings = {"mps_warm_start": time.perf_counter() - start}
         self.last_info = {}
         return new, velocity
-
-    @staticmethod
-    def _advanced(
-        state: ParticleState,
-        fluid_pos: torch.Tensor,
-        fluid_vel: torch.Tensor,
-        dt: float,
-        pressure: torch.Tensor | None = None,
-    ) -> ParticleState:
-        """``state`` one step of ``dt`` later with the fluid rows replaced (the boundary never moves)."""
-        nf = state.n_fluid
-        pos, vel = state.pos.clone(), state.vel.clone()
-        pos[:nf], vel[:nf] = fluid_pos, fluid_vel
-        return ParticleState(
-            pos=pos,
-            vel=vel,
-            ptype=state.ptype,
-            params=state.params,
-            pressure=torch.zeros_like(state.pressure) if pressure is None else pressure,
-            time=state.time + dt,
-            step=state.step + 1,
-            bounds=state.bounds,
-            check=False,
-        )
 
     def attributes(self) -> dict[str, Any]:
         """Where the weights came from, the frame spacing and the warm start."""

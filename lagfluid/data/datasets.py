@@ -209,6 +209,13 @@ class _SceneDataset(Dataset):
         keep = dist < r  # strict, as radius_graph
         return b["pos"][keep], b["ptype"][keep]
 
+    def _bounds(self, file: int) -> dict[str, torch.Tensor]:
+        """``{"bounds": (1, 2, 3)}`` the scene's domain box, or nothing (a scene without a tank has none)."""
+        bounds = self.infos[file].attrs.get("bounds")
+        if isinstance(bounds, np.ndarray) and bounds.shape == (2, 3):
+            return {"bounds": torch.from_numpy(bounds.astype(np.float32)).unsqueeze(0)}
+        return {}
+
     def _scene_fields(self, file: int) -> dict[str, torch.Tensor]:
         """Graph-level fields every scene sample carries."""
         a = self.infos[file].attrs
@@ -380,17 +387,13 @@ class TrajectoryWindows(_SceneDataset):
         b_pos, b_type = self._near_boundary(file, window[-2])
         a = self.infos[file].attrs
         every = int(a["sample_every"])
-        bounds = a.get("bounds")
-        extra = {}
-        if isinstance(bounds, np.ndarray) and bounds.shape == (2, 3):  # a scene without a tank has none
-            extra["bounds"] = torch.from_numpy(bounds.astype(np.float32)).unsqueeze(0)
         return Data(
             **_with_boundary(window[-2], None, b_pos, b_type),
             history=torch.from_numpy(np.ascontiguousarray(window[:-2].transpose(1, 0, 2))),
             y=torch.from_numpy(window[-1]),
             frame_dt=torch.tensor([float(a["dt"]) * every], dtype=torch.float32),
             step=torch.tensor([t * every]),
-            **extra,
+            **self._bounds(file),
             **self._scene_fields(file),
         )
 
@@ -442,14 +445,10 @@ class StepWindows(_SceneDataset):
         frame = int(s["frame"][local])
         pos, vel = g["position"][frame], g["velocity"][frame]
         b_pos, b_type = self._near_boundary(file, pos)
-        bounds = self.infos[file].attrs.get("bounds")
-        extra = {}
-        if isinstance(bounds, np.ndarray) and bounds.shape == (2, 3):
-            extra["bounds"] = torch.from_numpy(bounds.astype(np.float32)).unsqueeze(0)
         return Data(
             **_with_boundary(pos, vel, b_pos, b_type),
             y=torch.from_numpy(s["next/position"][local, : self.steps]).transpose(0, 1).contiguous(),
             step=torch.tensor([int(s["step"][local])]),
-            **extra,
+            **self._bounds(file),
             **self._scene_fields(file),
         )
