@@ -32,7 +32,8 @@ from pathlib import Path
 
 import torch
 
-from baselines.cconv.conv import MAPPINGS, ContinuousConv, conv_geometry, conv_pairs, window_poly6
+from baselines.cconv.conv import MAPPINGS, ContinuousConv, conv_geometry, conv_pairs
+from baselines.cconv.oracle import open3d_layer
 from benchmarks.provenance import markdown, provenance
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -59,30 +60,6 @@ def median_time(fn: Callable[[], object], repeats: int) -> float:
         fn()
         times.append(time.perf_counter() - start)
     return statistics.median(times)
-
-
-def open3d_layer(cin: int, cout: int, mapping: str, kernel: torch.Tensor) -> torch.nn.Module | None:
-    """Open3D's layer with DeepLagrangianFluids' options and ``kernel``, or None without Open3D."""
-    try:
-        import open3d.ml.torch as ml3d
-    except Exception:
-        return None
-    layer = ml3d.layers.ContinuousConv(
-        in_channels=cin,
-        filters=cout,
-        kernel_size=list(kernel.shape[:3]),
-        activation=None,
-        align_corners=True,
-        interpolation="linear",
-        coordinate_mapping=mapping,
-        normalize=False,
-        window_function=window_poly6,
-        radius_search_ignore_query_points=True,
-    )
-    with torch.no_grad():
-        layer.kernel.copy_(kernel)
-        layer.bias.zero_()
-    return layer
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -117,7 +94,7 @@ def main(argv: list[str] | None = None) -> None:
                 )
                 ours = conv(feats, geo)
                 row: dict[str, float | int | str] = {"c_in": cin, "c_out": cout, "mapping": mapping}
-                reference = open3d_layer(cin, cout, mapping, conv.kernel.detach())
+                reference = open3d_layer(conv.kernel.detach(), None, mapping)
                 if reference is not None:
                     expected = reference(feats, pos, pos, 2 * RADIUS)
                     err = float((ours - expected).abs().max())

@@ -23,6 +23,7 @@ from baselines.cconv.conv import (
     window_poly6,
 )
 from baselines.cconv.network import CConvNet
+from baselines.cconv.oracle import open3d_layer
 from baselines.cconv.simulator import Y_UP, build_original
 from lagfluid.config import at_simulator_time_step, build_initial_state, run_guard
 from lagfluid.errors import ConfigError, RolloutError
@@ -38,12 +39,9 @@ needs_dlf_weights = pytest.mark.skipif(not DLF_WEIGHTS.is_file(), reason="../sha
 
 
 def _open3d():
-    """Open3D's torch ops, or skip (the oracle is an optional extra)."""
-    try:
-        import open3d.ml.torch as ml3d
-    except Exception:
+    """Skip without Open3D (the oracle is an optional extra)."""
+    if open3d_layer(torch.zeros(2, 2, 2, 1, 1)) is None:
         pytest.skip("open3d-cpu (the optional CConv oracle) is not installed")
-    return ml3d
 
 
 def _compose(*overrides):
@@ -158,7 +156,7 @@ def test_bad_options_are_named():
 @pytest.mark.parametrize("mapping", sorted(MAPPINGS))
 @pytest.mark.parametrize("channels", [(4, 32), (96, 64)])
 def test_the_operator_matches_open3d(mapping, channels):
-    ml3d = _open3d()
+    _open3d()
     cin, cout = channels
     pos, g = _cloud(400)
     out_pos = torch.rand(250, 3, generator=g)
@@ -166,24 +164,11 @@ def test_the_operator_matches_open3d(mapping, channels):
     for same in (True, False):
         queries = pos if same else out_pos
         feats = torch.randn(400, cin, generator=g, requires_grad=True)
-        ref = ml3d.layers.ContinuousConv(
-            in_channels=cin,
-            filters=cout,
-            kernel_size=[3, 4, 5],
-            activation=None,
-            align_corners=True,
-            interpolation="linear",
-            coordinate_mapping=mapping,
-            normalize=False,
-            window_function=window_poly6,
-            radius_search_ignore_query_points=True,
-        )
         ours = ContinuousConv(cin, cout, (3, 4, 5), mapping)
         with torch.no_grad():
-            ref.kernel.copy_(torch.randn(ref.kernel.shape, generator=g))
-            ref.bias.copy_(torch.randn(cout, generator=g))
-            ours.kernel.copy_(ref.kernel)
-            ours.bias.copy_(ref.bias)
+            ours.kernel.copy_(torch.randn(ours.kernel.shape, generator=g))
+            ours.bias.copy_(torch.randn(cout, generator=g))
+        ref = open3d_layer(ours.kernel.detach(), ours.bias.detach(), mapping)
         expected = ref(feats, pos, queries, 2 * r)
         geo = conv_geometry(
             pos, queries, conv_pairs(pos, None if same else queries, r), r, (3, 4, 5), mapping
@@ -216,29 +201,14 @@ def test_network_has_the_papers_parameter_count_and_dlf_state_dict_keys():
 @needs_dlf_weights
 def test_dlf_weights_against_open3d_layers():
     """Their network rebuilt from Open3D's layers with the same weights (their forward, written out)."""
-    ml3d = _open3d()
+    _open3d()
 
     net = load_dlf_network(DLF_WEIGHTS)
     assert net.trained_parameter_count() == 692_902
     state = torch.load(DLF_WEIGHTS, weights_only=True)
 
     def o3d_conv(name, cin, cout):
-        conv = ml3d.layers.ContinuousConv(
-            in_channels=cin,
-            filters=cout,
-            kernel_size=[4, 4, 4],
-            activation=None,
-            align_corners=True,
-            interpolation="linear",
-            coordinate_mapping="ball_to_cube_volume_preserving",
-            normalize=False,
-            window_function=window_poly6,
-            radius_search_ignore_query_points=True,
-        )
-        with torch.no_grad():
-            conv.kernel.copy_(state[f"{name}.kernel"])
-            conv.bias.copy_(state[f"{name}.bias"])
-        return conv
+        return open3d_layer(state[f"{name}.kernel"], state[f"{name}.bias"])
 
     pos, vel, box, normals = _block_and_floor()
     with torch.no_grad():
