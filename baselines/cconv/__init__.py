@@ -6,8 +6,11 @@ runs, on the CPU and on CUDA. The package is a lagfluid plugin (entry points in 
 * :mod:`baselines.cconv.conv`: the :class:`~baselines.cconv.conv.ContinuousConv` layer and its pair geometry;
 * :mod:`baselines.cconv.network`: :class:`~baselines.cconv.network.CConvNet`, their ``MyParticleNetwork``;
 * :mod:`baselines.cconv.boundary`: boundary particles -> surface points with normals;
-* :mod:`baselines.cconv.simulator`: ``model=cconv_original`` rollouts and :func:`load_dlf_network`;
-* ``conf/``: the config groups.
+* :mod:`baselines.cconv.simulator`: ``model=cconv_original`` rollouts, :func:`load_dlf_network`, and the
+  simulator of ``model=cconv`` (registered once its weights ship);
+* :mod:`baselines.cconv.trainable`: ``task=train model=cconv`` (DeepLagrangianFluids' two-step recipe);
+* :mod:`baselines.cconv.oracle`: Open3D's op as the optional test oracle;
+* ``conf/``: the config groups (``model/cconv_original``, ``model/cconv``, ``train/cconv_*``, table rows).
 """
 
 from .simulator import load_dlf_network
