@@ -178,6 +178,7 @@ class _GeometryMatmul(torch.autograd.Function):
         return ctx.geometry.transpose(ctx.chunk) @ grad, None, None
 
 
+@torch.no_grad()
 def conv_pairs(
     inp_pos: Tensor,
     out_pos: Tensor | None,
@@ -272,7 +273,6 @@ def conv_geometry(
 
     if chunk_cells is None:
         chunk_cells = max(1, min(cells, (1 << 21) // max(n_in, 1)))
-    crow_base = torch.zeros(n_out + 1, dtype=torch.long, device=i.device)
     chunks, splits = [], [*list(range(0, cells, chunk_cells)), cells]
     for lo, hi in itertools.pairwise(splits):
         # Row order (by output point) and column order (j, then cell: the corners come x fastest) are kept
@@ -282,7 +282,7 @@ def conv_geometry(
             inside = (cell >= lo) & (cell < hi)  # (E, 8)
             per_row = torch.zeros_like(counts).index_add_(0, i, inside.sum(1))
             cols, vals = (j[:, None] * (hi - lo) + (cell - lo))[inside], w[inside]
-        crow = crow_base.clone()
+        crow = torch.zeros(n_out + 1, dtype=torch.long, device=i.device)
         crow[1:] = torch.cumsum(per_row, 0)
         with warnings.catch_warnings():
             warnings.filterwarnings("ignore", message=".*Sparse CSR tensor support is in beta.*")

@@ -109,21 +109,11 @@ class CConvNet(nn.Module):
         box_batch: Tensor | None = None,
     ) -> tuple[ConvGeometry, ConvGeometry]:
         """The fluid->fluid and the boundary->fluid pair geometries at the fluid positions ``pos`` (N, 3)."""
-        r = self.filter_radius
-        with torch.no_grad():
-            pos_d, box_d = pos.detach(), box.detach()
-            fluid = conv_geometry(
-                pos_d,
-                pos_d,
-                conv_pairs(pos_d, None, r, inp_batch=batch),
-                r,
-                self.kernel_size,
-                self.mapping,
-                self.window,
-            )
-            pairs = conv_pairs(box_d, pos_d, r, inp_batch=box_batch, out_batch=batch)
-            obstacle = conv_geometry(box_d, pos_d, pairs, r, self.kernel_size, self.mapping, self.window)
-        return fluid, obstacle
+        # Neither the search nor conv_geometry is differentiated (no gradient to positions, as Open3D's op)
+        r, options = self.filter_radius, (self.kernel_size, self.mapping, self.window)
+        fluid = conv_geometry(pos, pos, conv_pairs(pos, None, r, inp_batch=batch), r, *options)
+        pairs = conv_pairs(box, pos, r, inp_batch=box_batch, out_batch=batch)
+        return fluid, conv_geometry(box, pos, pairs, r, *options)
 
     def compute_correction(
         self,
