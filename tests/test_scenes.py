@@ -299,6 +299,29 @@ def test_random_velocity_is_along_one_axis_and_at_most_0_1(seed):
     assert f_hi[2] <= 20  # top at most half the 40 l0 wall
 
 
+def test_random_column_collapses_stand_at_rest_against_a_side_wall():
+    layouts = [random_layout(seed=s, column_probability=1.0) for s in range(24)]
+    walls, places = set(), set()
+    for layout in layouts:
+        block = layout.fluid[0]
+        lo, hi = np.array(block.lower), np.array(block.upper)
+        assert sorted(block.size) == [10, 20, 25] and block.size[2] == 20 and lo[2] == 1
+        assert block.velocity == (0.0, 0.0, 0.0)
+        touching = [(a, side) for a in (0, 1) for side, at in ((0, lo[a] == 1), (1, hi[a] == 79)) if at]
+        normal = 0 if block.size[0] == 10 else 1
+        assert (normal, 0) in touching or (normal, 1) in touching  # its thin side against a wall
+        walls |= {t for t in touching if t[0] == normal}
+        places.add(len(touching))  # 2: in a corner
+        for shape in layout.obstacles:
+            o_lo, o_hi = shape.bbox()
+            assert (o_hi < lo).any() or (np.maximum(o_lo, 0) > hi).any()
+    assert walls == {(0, 0), (0, 1), (1, 0), (1, 1)} and places == {1, 2}
+    # Off by default, and a seed's other draws stay the paper scene's when it is 0
+    assert random_layout(seed=3).description == random_layout(seed=3, column_probability=0.0).description
+    mixed = [random_layout(seed=s, column_probability=0.5).fluid[0].size for s in range(12)]
+    assert 0 < sum(size[2] == 20 for size in mixed) < 12
+
+
 def test_random_state_carries_the_drawn_velocity():
     layout = random_layout(seed=3, **SMALL)
     state = layout.build()
@@ -439,6 +462,8 @@ def test_missing_and_malformed_files_name_the_path(tmp_path):
         ("random", {"obstacle_kinds": ["cone"]}, "obstacle_kinds must be a non-empty subset"),
         ("random", {"max_speed": float("nan")}, "max_speed must be finite"),
         ("random", {"fluid_size": (25, 25, 30)}, "does not fit in tank_size"),
+        ("random", {"column_probability": 1.5}, r"column_probability must be in \[0, 1\], got 1.5"),
+        ("random", {"column_probability": 1, "column_size": (10, 25, 30)}, "needs walls of 2 x 30 l0"),
         (
             "random",
             {"tank_size": (30, 30), "wall_height": 30, "fluid_size": (29, 29, 15), "n_obstacles": 1},

@@ -285,6 +285,30 @@ def _random_obstacle(
     return shape, np.array([cx - r, cy - r, 0]), np.array([cx + r, cy + r, 2 * r])
 
 
+def _wall_column(
+    rng: np.random.Generator, column_size: Sequence[int], tank: tuple[int, int], wall_height: int
+) -> FluidBlock:
+    """A fluid column at rest on the floor against a drawn side wall: in one of its corners or anywhere."""
+    thin, along, height = as_vector("column_size", column_size, 3, integer=True, positive=True)
+    if 2 * height > wall_height:
+        raise SceneError(
+            f"random: column height {height} l0 needs walls of 2 x {height} l0 (Ritter's run-up bound), "
+            f"wall_height is {wall_height}"
+        )
+    normal = int(rng.integers(2))  # the wall's axis: x or y
+    side = int(rng.integers(2))  # the low or the high wall
+    place = int(rng.integers(3))  # low corner, high corner, anywhere along the wall
+    size = [0, 0, height]
+    size[normal], size[1 - normal] = thin, along
+    if size[0] > tank[0] - 1 or size[1] > tank[1] - 1:
+        raise SceneError(f"random: column_size {tuple(column_size)} does not fit in tank_size {tank}")
+    lower = [0, 0, 1]
+    lower[normal] = 1 if side == 0 else tank[normal] - thin
+    span = tank[1 - normal] - along  # lattice starts 1 .. span
+    lower[1 - normal] = (1, span, int(rng.integers(1, span + 1)))[place]
+    return FluidBlock(lower=tuple(lower), size=tuple(size))
+
+
 def random_layout(
     seed: int = 0,
     tank_size: Sequence[int] = (80, 80),
@@ -296,6 +320,8 @@ def random_layout(
     max_fluid_top: int | None = None,
     n_wall: int = 2,
     n_dummy: int = 2,
+    column_probability: float = 0.0,
+    column_size: Sequence[int] = (10, 25, 20),
 ) -> Scene:
     """Random training scene after the paper (A.2): one fluid block and one or two obstacles in a box.
 
@@ -305,6 +331,13 @@ def random_layout(
       (default ``wall_height // 2``, see the module doc on wall heights), so it may start in the air;
     * its initial velocity: speed U(0, ``max_speed``) m/s along one axis drawn from x, y, z, with a
       random sign;
+    * with probability ``column_probability`` (drawn only when it is > 0, so the other draws of a seed
+      stay those of the paper's scenes), a column collapse instead: a ``column_size`` block at rest on
+      the floor against one side wall (which of the four drawn), in a corner of it or anywhere along it
+      (one in three each). The paper's blocks rarely start at a wall, and nothing in them stands as deep
+      as a dam's column against one: a model that never saw hydrostatic pressure on a side wall does
+      not learn to hold it (GNS's dam rollouts, ``baselines/gns/weights/MODEL_CARD.md``). The default
+      column is the dam's height (20 l0), so the tank's 40 l0 walls are Ritter's ``2 h`` bound;
     * ``n_obstacles`` obstacles (default: 1 or 2, drawn), each of a kind drawn from
       ``obstacle_kinds``, standing on the floor (sunk into it, see :func:`sink_depth`), inside
       the tank and not touching the fluid block or each other: box (footprint 6-20 l0, height 6-25),
@@ -325,11 +358,16 @@ def random_layout(
         max_fluid_top: highest lattice z of the fluid block; default ``wall_height // 2``.
         n_wall: wall layers.
         n_dummy: dummy layers.
+        column_probability: chance in [0, 1] that the scene is a column collapse.
+        column_size: (3,) the column's particles along its thin side, along the wall and up.
 
     Returns:
         the scene; its ``description`` says what was drawn.
     """
     seed = check_positive_int("seed", seed, minimum=0)
+    column_probability = float(column_probability)
+    if not 0.0 <= column_probability <= 1.0:
+        raise SceneError(f"column_probability must be in [0, 1], got {column_probability}")
     lx, ly = as_vector("tank_size", tank_size, 2, integer=True, positive=True)
     wall_height = check_positive_int("wall_height", wall_height)
     fx, fy, fz = as_vector("fluid_size", fluid_size, 3, integer=True, positive=True)
@@ -347,15 +385,20 @@ def random_layout(
             f"max_fluid_top {top}"
         )
     rng = np.random.default_rng(seed)
-    lower = (
-        int(rng.integers(1, lx - fx + 1)),
-        int(rng.integers(1, ly - fy + 1)),
-        int(rng.integers(1, top - fz + 2)),
-    )
-    axis = int(rng.integers(3))
-    velocity = [0.0, 0.0, 0.0]
-    velocity[axis] = float(rng.uniform(0.0, max_speed)) * (1.0 if rng.integers(2) else -1.0)
-    block = FluidBlock(lower=lower, size=(fx, fy, fz), velocity=tuple(velocity))
+    if column_probability > 0.0 and rng.uniform() < column_probability:
+        block = _wall_column(rng, column_size, (lx, ly), wall_height)
+        fx, fy, fz = block.size
+    else:
+        lower = (
+            int(rng.integers(1, lx - fx + 1)),
+            int(rng.integers(1, ly - fy + 1)),
+            int(rng.integers(1, top - fz + 2)),
+        )
+        axis = int(rng.integers(3))
+        velocity = [0.0, 0.0, 0.0]
+        velocity[axis] = float(rng.uniform(0.0, max_speed)) * (1.0 if rng.integers(2) else -1.0)
+        block = FluidBlock(lower=lower, size=(fx, fy, fz), velocity=tuple(velocity))
+    lower, velocity = block.lower, block.velocity
     f_lo, f_hi = np.array(block.lower), np.array(block.upper)
 
     count = (
