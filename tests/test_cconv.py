@@ -24,7 +24,7 @@ from baselines.cconv.conv import (
 )
 from baselines.cconv.network import CConvNet
 from baselines.cconv.oracle import open3d_layer
-from baselines.cconv.simulator import Y_UP, build_original
+from baselines.cconv.simulator import SHIPPED, Y_UP, build_original, build_simulator
 from lagfluid.config import at_simulator_time_step, build_initial_state, run_guard
 from lagfluid.errors import ConfigError, RolloutError
 from lagfluid.models.checkpoint import CheckpointError
@@ -344,6 +344,27 @@ def test_a_scene_at_another_spacing_is_refused():
     cfg = _compose("scene=dam_small", "scene.params.l0=0.04")
     with pytest.raises(RolloutError, match=r"l0 = 0\.04"):
         sim.reset(build_initial_state(cfg))
+
+
+def test_model_cconv_names_missing_weights(tmp_path):
+    cfg = _compose("model=cconv", f"model.weights={tmp_path}")
+    with pytest.raises(CheckpointError, match=rf"no CConv weights at {tmp_path}/cconv\.pt: train them"):
+        build_simulator(cfg)
+
+
+@pytest.mark.skipif(not (SHIPPED / "cconv.pt").is_file(), reason="no shipped CConv weights")
+def test_the_shipped_weights_roll_out_the_small_dam_finite_and_inside_the_tank():
+    assert "cconv" in available_simulators()
+    cfg = _compose("model=cconv", "scene=dam_small")
+    sim = check_simulator(build_simulator(cfg), "cconv")
+    assert sim.dt == 0.002 and sim.history_length == 0 and sim.parameters == 692_902
+    state = at_simulator_time_step(build_initial_state(cfg), sim, cfg)
+    final, _ = rollout(sim, state, 25, guard=run_guard(cfg, sim))
+    nf = final.n_fluid
+    assert bool(torch.isfinite(final.pos).all()) and final.fluid_outside_bounds().numel() == 0
+    assert torch.equal(final.pos[nf:], state.pos[nf:])  # the boundary never moves
+    # 50 ms of a collapse: the column has started to fall (free fall would drop its top 12 mm)
+    assert float(final.pos[:nf, 2].max()) < float(state.pos[:nf, 2].max()) - 0.002
 
 
 # --------------------------------------------------------------------------------------------- training

@@ -234,7 +234,7 @@ def build_simulator(cfg: Any) -> CConvSimulator:
     if not path.is_file():
         raise CheckpointError(
             f"no CConv weights at {path}: train them (python -m lagfluid.run task=train model=cconv "
-            "train=cconv_cpu data=cpu data.next_steps=2) and pass model.weights=<that out_dir>"
+            "train=cconv_cpu data=cpu) and pass model.weights=<that out_dir>"
         )
     net, offset = load_cconv(path, str(cfg.device), getattr(torch, str(cfg.dtype)))
     return CConvSimulator(net, "cconv", str(path), torch.eye(3), offset)
