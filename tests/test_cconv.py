@@ -410,6 +410,35 @@ def test_the_trainable_predicts_two_steps_and_its_loss_is_dlfs(step_data):
     assert float(dlf_loss(shifted, target)) == pytest.approx(expected, rel=1e-4)
 
 
+def test_training_surface_is_the_whole_tanks_surface_near_the_fluid(step_data):
+    # A wall particle at the edge of a window's boundary crop looks one-sided: without the wider crop it
+    # became a false surface point inside the wall, which rollouts (the whole tank) never see.
+    from baselines.cconv.trainable import REACH, CConvTrainable
+    from lagfluid.data.datasets import StepWindows
+    from lagfluid.state import ParticleType
+
+    fluid_type = int(ParticleType.FLUID)
+
+    trainable = CConvTrainable(_compose("model=cconv"))
+    window = trainable.datasets(step_data)[0][0]
+    whole = StepWindows(step_data, "train", steps=2, boundary_radius=None)[0]
+    l0 = float(window.l0)
+    fluid = window.ptype == fluid_type
+    points, _, _ = trainable.surface(window.pos, fluid, torch.zeros_like(window.ptype), l0)
+    wall = whole.pos[whole.ptype != fluid_type]
+    all_points, _, rows = surface_points(wall, l0, trainable.surface_offset)
+    near = torch.cdist(wall[rows], whole.pos[whole.ptype == fluid_type]).min(dim=1).values < REACH * l0
+    assert points.shape[0] > 0
+
+    def key(p):
+        return {tuple(v) for v in torch.round(p / (0.25 * l0)).long().tolist()}
+
+    assert key(points) == key(all_points[near])  # the whole tank's surface near the fluid, nothing else
+    cropped = StepWindows(step_data, "train", steps=2)[0]  # the narrower default crop makes false ones
+    crop_points, _, _ = surface_points(cropped.pos[cropped.ptype != fluid_type], l0, trainable.surface_offset)
+    assert not key(crop_points) <= key(all_points)
+
+
 def test_a_gravity_other_than_the_datas_is_refused(step_data):
     from baselines.cconv.trainable import CConvTrainable
 
