@@ -153,16 +153,15 @@ class CConvTrainable:
         """
         boundary = ~fluid
         points, normals, rows = surface_points(pos[boundary], l0, self.surface_offset, sample[boundary])
-        walls, box_batch = pos[boundary][rows], sample[boundary][rows]
-        both = torch.cat([pos[fluid], walls])
-        receivers = torch.zeros(both.shape[0], dtype=torch.bool, device=both.device)
-        receivers[int(fluid.sum()) :] = True
+        box_batch, nf = sample[boundary][rows], int(fluid.sum())
+        both = torch.cat([pos[fluid], pos[boundary][rows]])
+        receivers = torch.arange(both.shape[0], device=both.device) >= nf  # the surface's wall particles
         edges = radius_graph(
             both, REACH * l0, batch=torch.cat([sample[fluid], box_batch]), receivers=receivers
         )
-        near = torch.zeros(both.shape[0], dtype=torch.bool, device=both.device)
-        near[edges[1][edges[0] < int(fluid.sum())]] = True
-        keep = near[int(fluid.sum()) :]
+        keep = torch.zeros(both.shape[0], dtype=torch.bool, device=both.device)
+        keep[edges[1][edges[0] < nf]] = True  # a fluid particle within REACH
+        keep = keep[nf:]
         return points[keep], normals[keep], box_batch[keep]
 
     def identity(self) -> dict[str, Any]:
