@@ -14,9 +14,10 @@ from torch_geometric.data import Batch, Data
 from baselines.gns.graph import bounds_features, build_graph
 from baselines.gns.network import GNSNet, InteractionNetwork
 from baselines.gns.simulator import SHIPPED, GNSSimulator, build_simulator
-from baselines.gns.trainable import GNSTrainable, random_walk_noise, step_acceleration
+from baselines.gns.trainable import GNSTrainable, random_walk_noise, step_acceleration, symmetric_batch
 from lagfluid.config import at_simulator_time_step, build_initial_state, initial_history, run_guard
-from lagfluid.errors import RolloutError
+from lagfluid.data.symmetry import HorizontalSymmetry
+from lagfluid.errors import LagfluidError, RolloutError
 from lagfluid.generate import generate
 from lagfluid.integrate import acceleration_from_positions, semi_implicit_euler
 from lagfluid.models.mps_simulator import build_mps
@@ -227,6 +228,28 @@ def test_training_noise_and_pushforward_are_only_in_training():
     noisy = trainable.predict(net, batch)
     assert int(net.trained_batches) == 1
     assert not torch.allclose(noisy[1], clean[1])  # the target moved with the noise and the unroll
+
+
+def test_a_horizontal_symmetry_maps_the_windows_target_acceleration_as_a_vector():
+    trainable = _trainable()
+    net = _net(dtype=torch.float32)
+    batch = Batch.from_data_list([_item(0, 5), _item(1, 4)])
+    symmetry = HorizontalSymmetry(flip_x=True, flip_y=False, swap=True)
+    mapped = symmetric_batch(batch, symmetry)
+    _, target = trainable.predict(net, batch)
+    _, mapped_target = trainable.predict(net, mapped)
+    acc = net.acceleration.inverse
+    torch.testing.assert_close(acc(mapped_target), symmetry.vectors(acc(target)), atol=1e-3, rtol=1e-5)
+    assert torch.equal(mapped.bounds, batch.bounds[:, :, [1, 0, 2]])
+    net.train()
+    on = _trainable(horizontal_symmetries=True)
+    assert on.identity()["horizontal_symmetries"] and "horizontal_symmetries" not in trainable.identity()
+    targets = {tuple(on.predict(net, batch)[1][0].tolist()) for _ in range(40)}
+    assert len(targets) > 2  # drawn per batch in training
+    no_bounds = _item(0, 5)
+    del no_bounds.bounds
+    with pytest.raises(LagfluidError, match="horizontal_symmetries needs scenes with a tank"):
+        on.predict(net, Batch.from_data_list([no_bounds]))
 
 
 def test_a_perfect_predictor_reproduces_the_trajectory(tiny_data):

@@ -12,6 +12,10 @@ frames (``H`` the velocity history, ``K`` the longest pushforward unroll) and th
    inverse of the rollout's semi-implicit Euler) restores the true next velocity.
 3. **Loss**: MSE of the standardised acceleration of the fluid particles (boundary nodes carry none).
 
+Optionally (``train.horizontal_symmetries``), each batch first goes through one of the 8 horizontal
+symmetries of its tank (:class:`lagfluid.data.symmetry.HorizontalSymmetry`, drawn uniformly): GNS is not
+equivariant to them, and the data press fluid on some walls far more than on others.
+
 Statistics (:meth:`GNSTrainable.fit_statistics`): mean and std per axis of the finite-difference velocities
 and accelerations of the training frames, std combined with the noise's, ``sqrt(std^2 + noise^2)``
 (DeepMind), stored in the network's buffers with the frame spacing (the model's time step).
@@ -30,6 +34,7 @@ from torch import Tensor, nn
 from torch_geometric.data import Batch, Data
 
 from lagfluid.data.datasets import TrajectoryWindows
+from lagfluid.data.symmetry import HorizontalSymmetry
 from lagfluid.errors import ConfigError, LagfluidError
 from lagfluid.integrate import acceleration_from_positions, semi_implicit_euler
 from lagfluid.state import ParticleType
@@ -97,12 +102,35 @@ def step_acceleration(
     return fluid_acceleration(net, pos, velocities, graph, bounds, radius)
 
 
+def symmetric_batch(batch: Data, symmetry: HorizontalSymmetry) -> Data:
+    """A copy of a window batch with positions, history, target and bounds mapped by ``symmetry``.
+
+    Raises:
+        LagfluidError: the batch has no domain bounds (a symmetry needs the box it maps onto itself).
+    """
+    bounds = _bounds(batch)
+    if bounds is None:
+        raise LagfluidError(
+            "train.horizontal_symmetries needs scenes with a tank (the windows have no bounds)"
+        )
+    if symmetry.is_identity:
+        return batch
+    fluid = batch.ptype == ParticleType.FLUID
+    fluid_bounds = bounds[fluid] if bounds.dim() == 3 else bounds
+    out = batch.clone()
+    out.pos = symmetry.points(batch.pos, bounds)
+    out.history = symmetry.points(batch.history, fluid_bounds.unsqueeze(-3))
+    out.y = symmetry.points(batch.y, fluid_bounds)
+    out.bounds = symmetry.bounds(batch.bounds)
+    return out
+
+
 class GNSTrainable:
     """:class:`~lagfluid.models.trainable.Trainable` of ``model=gns`` (module doc).
 
     Reads ``cfg.model.gns`` (network options) and ``cfg.train``: ``noise_std`` (l0, random-walk noise at the
-    last input frame) and ``pushforward`` (``unrolls`` list, ``probs`` weights, ``start`` the batch after
-    which unrolls are drawn).
+    last input frame), ``pushforward`` (``unrolls`` list, ``probs`` weights, ``start`` the batch after
+    which unrolls are drawn) and ``horizontal_symmetries`` (bool, default false: augment, module doc).
     """
 
     name = NAME
@@ -126,6 +154,7 @@ class GNSTrainable:
         self.probs = torch.tensor(probs) / sum(probs)
         self.push_start = int(push.get("start", 0))
         self.history = int(self.options.get("history", 5))
+        self.symmetries = bool(tcfg.get("horizontal_symmetries", False))
 
     # ------------------------------------------------------------------------ Trainable
     def datasets(self, data_dir: Path) -> tuple[Any, Any]:
@@ -171,6 +200,8 @@ class GNSTrainable:
 
     def predict(self, net: nn.Module, batch: Batch) -> tuple[Tensor, Tensor]:
         """Standardised predicted and target accelerations of the fluid, (Nf, 3) each."""
+        if net.training and self.symmetries:
+            batch = symmetric_batch(batch, HorizontalSymmetry.draw())
         fluid = batch.ptype == ParticleType.FLUID
         dt = _scalar(batch.frame_dt, "frame_dt")
         l0 = _scalar(batch.l0, "l0")
@@ -198,10 +229,13 @@ class GNSTrainable:
 
     def identity(self) -> dict[str, Any]:
         """Noise and pushforward settings (they change the trained weights)."""
-        return {
+        identity = {
             "noise_std": self.noise_std,
             "pushforward": {"unrolls": self.unrolls, "probs": self.probs.tolist(), "start": self.push_start},
         }
+        if self.symmetries:  # only then, so checkpoints trained without it keep their identity
+            identity["horizontal_symmetries"] = True
+        return identity
 
     # ------------------------------------------------------------------------ helpers
     def _draw_unroll(self, batches: int) -> int:
