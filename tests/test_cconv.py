@@ -26,7 +26,7 @@ from baselines.cconv.network import CConvNet
 from baselines.cconv.oracle import open3d_layer
 from baselines.cconv.simulator import SHIPPED, Y_UP, build_original, build_simulator
 from lagfluid.config import at_simulator_time_step, build_initial_state, run_guard
-from lagfluid.errors import ConfigError, RolloutError
+from lagfluid.errors import ConfigError, LagfluidError, RolloutError
 from lagfluid.models.checkpoint import CheckpointError
 from lagfluid.models.simulator import check_simulator
 from lagfluid.registry import available_simulators
@@ -437,6 +437,50 @@ def test_training_surface_is_the_whole_tanks_surface_near_the_fluid(step_data):
     cropped = StepWindows(step_data, "train", steps=2)[0]  # the narrower default crop makes false ones
     crop_points, _, _ = surface_points(cropped.pos[cropped.ptype != fluid_type], l0, trainable.surface_offset)
     assert not key(crop_points) <= key(all_points)
+
+
+def test_frame_windows_hold_the_next_stored_frames(step_data):
+    import h5py
+
+    from lagfluid.data.datasets import StepWindows
+
+    steps = StepWindows(step_data, None, steps=2, boundary_radius=None)
+    frames = StepWindows(step_data, None, steps=0, frames=2, boundary_radius=None)
+    scene = sorted((step_data / "scenes").glob("*.h5"))[0]
+    with h5py.File(scene, "r") as f:
+        sample_frames, every = f["samples/frame"][()], int(f["00000"].attrs["sample_every"])
+        position = f["00000/position"][()]
+    last = len(position) - 1
+    kept = int((sample_frames + 2 <= last).sum())
+    assert 0 < kept < len(sample_frames)  # the samples 2 frames from the end are left out
+    assert len(frames) < len(steps)
+    item = frames[kept - 1]  # the last kept sample of the first scene
+    frame = int(sample_frames[kept - 1])
+    assert torch.equal(item.y_frames, torch.from_numpy(position[frame + 1 : frame + 3]).transpose(0, 1))
+    assert int(item.frame_steps) == every == 2
+    # data=tiny samples every 2 steps: the second stored next step is the next frame
+    torch.testing.assert_close(steps[0].y[:, 1], frames[0].y_frames[:, 0])
+    with pytest.raises(LagfluidError, match="steps and frames"):
+        StepWindows(step_data, None, steps=0, frames=0)
+
+
+def test_unrolling_to_a_frame_is_stepping_the_network_to_it(step_data):
+    from torch_geometric.data import Batch
+
+    from baselines.cconv.trainable import CConvTrainable
+
+    two_steps = CConvTrainable(_compose("model=cconv"))
+    to_frame = CConvTrainable(_compose("model=cconv", "+train.unroll_frames=1"))
+    assert to_frame.identity()["unroll_frames"] == 1 and "unroll_frames" not in two_steps.identity()
+    net = two_steps.build_network()
+    batch = Batch.from_data_list([two_steps.datasets(step_data)[0][1]])
+    frame_batch = Batch.from_data_list([to_frame.datasets(step_data)[0][1]])
+    with torch.no_grad():
+        pred2, target2 = two_steps.predict(net, batch)
+        pred_frame, target_frame = to_frame.predict(net, frame_batch)
+    assert pred_frame.shape[1] == 1  # one frame, 2 solver steps of data=tiny
+    torch.testing.assert_close(pred_frame[:, 0], pred2[:, 1])
+    torch.testing.assert_close(target_frame[:, 0], target2[:, 1])
 
 
 def test_a_gravity_other_than_the_datas_is_refused(step_data):

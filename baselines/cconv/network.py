@@ -8,7 +8,13 @@ One step of ``dt`` for the fluid positions ``x`` and velocities ``v``, boundarie
     h1 = conv1(relu h0) + dense1(relu h0)                         64
     h2 = conv2(relu h1) + dense2(relu h1) + h1                    64, residual
     h3 = conv3(relu h2) + dense3(relu h2)                         3
-    x' = x* + h3 / 128,  v' = (x' - x) / dt                       the correction and the velocity it implies
+    x' = x* + u h3 / 128,  v' = (x' - x) / dt                     the correction and the velocity it implies
+
+``u`` is ``length_unit`` (1 m for their network). A correction is an acceleration times dt^2, so at another
+time step than their 20 ms its size changes by (dt / 20 ms)^2: 100x smaller at our 2 ms. With u = 1 m there,
+Adam's steps of ~lr in the weights move the correction by more than the whole signal (~20 um a step) and the
+training stalls above the trivial predictor's loss (measured: ``baselines/cconv/weights/MODEL_CARD.md``);
+u = (dt / 20 ms)^2 m gives the network and its loss (:func:`baselines.cconv.trainable.dlf_loss`) their scale.
 
 Layer names, shapes and buffers are DeepLagrangianFluids' (``models/default_torch.py``), so their
 ``state_dict`` loads unchanged (692,902 trained parameters; the 5 ``offset`` and ``gravity`` are buffers).
@@ -40,6 +46,7 @@ class CConvNet(nn.Module):
         mapping: the convolutions' coordinate mapping.
         use_window: the poly6 window on every convolution.
         other_feats_channels: extra fluid input channels beside ``[1, v]``.
+        length_unit: m per unit of the correction and of the training loss (module doc; 1 = theirs).
     """
 
     def __init__(
@@ -53,6 +60,7 @@ class CConvNet(nn.Module):
         mapping: str = "ball_to_cube_volume_preserving",
         use_window: bool = True,
         other_feats_channels: int = 0,
+        length_unit: float = 1.0,
     ) -> None:
         super().__init__()
         self.layer_channels = [int(c) for c in layer_channels]
@@ -62,6 +70,9 @@ class CConvNet(nn.Module):
         self.mapping = mapping
         self.window = window_poly6 if use_window else None
         self.other_feats_channels = int(other_feats_channels)
+        if not float(length_unit) > 0:
+            raise ValueError(f"length_unit must be > 0 (m), got {length_unit!r}")
+        self.length_unit = float(length_unit)
         self.register_buffer("gravity", torch.tensor([float(g) for g in gravity]))
 
         c0 = self.layer_channels[0]
@@ -164,7 +175,7 @@ class CConvNet(nn.Module):
             x = F.relu(h)
             out = conv(x, fluid_geo) + dense(x)
             h = out + h if out.shape[-1] == h.shape[-1] else out
-        return h / 128  # DeepLagrangianFluids' output scale
+        return h * (self.length_unit / 128)  # DeepLagrangianFluids' output scale, in length units
 
     def forward(self, inputs: Sequence[Tensor | None]) -> tuple[Tensor, Tensor]:
         """One step, DeepLagrangianFluids' signature: ``(pos, vel, feats, box, box_feats) -> (pos, vel)``."""

@@ -9,7 +9,16 @@ next two solver steps. Per batch, as DeepLagrangianFluids' ``train_network_torch
 2. two steps of the network, the second from the first's predicted positions and velocities (the gradient
    flows through both; none through the pair geometry, as Open3D's op gives none);
 3. loss ``128 * sum_k 0.5 * mean_i exp(-n_i / 40) |x_pred - x_true|^0.5`` with ``n_i`` the fluid neighbours
-   of particle i at step k (fewer neighbours, the free surface, weigh more).
+   of particle i at step k (fewer neighbours, the free surface, weigh more), the distance in the network's
+   ``length_unit`` (DeepLagrangianFluids' metre at their 20 ms; ``(dt / 20 ms)^2`` m at ours, see
+   :mod:`baselines.cconv.network`).
+
+With ``train.unroll_frames`` F > 0 the windows are the sample's state and the next F stored frames
+(:class:`~lagfluid.data.datasets.StepWindows` ``frames=F``, e.g. 4 solver steps apart): the network unrolls
+to each of them (``4 F`` steps, the gradient through all) and the loss is the same, at the frames, each
+weighted 1 / F. MPS's per-step accelerations are mostly particle-level noise after the first impact
+(residual 3.6x the smooth field at 2 ms, 1.9x at 8 ms: ``benchmarks/results/acceleration_noise.md``); a
+longer horizon averages it out of the target.
 
 There are no normalisation statistics (their network has none); :meth:`CConvTrainable.fit_statistics`
 checks that the network's time step, particle radius and gravity are the data's.
@@ -49,7 +58,8 @@ filter radius plus a step's motion)."""
 def dlf_loss(prediction: Tensor, target: Tensor) -> Tensor:
     """DeepLagrangianFluids' loss of ``(Nf, K, 4)`` positions + neighbour weight (see :meth:`predict`).
 
-    ``LOSS_SCALE * sum_k (1 / K) mean_i w_ik (|x_pred - x_true|^2 + 1e-9)^0.25``, ``w = exp(-n / 40)``.
+    ``LOSS_SCALE * sum_k (1 / K) mean_i w_ik (|x_pred - x_true|^2 + 1e-9)^0.25``, ``w = exp(-n / 40)``,
+    positions in the network's length unit (:meth:`CConvTrainable.predict` divides them by it).
     """
     distance = (((prediction[..., :3] - target[..., :3]) ** 2).sum(-1) + 1e-9) ** 0.25
     per_step = (target[..., 3] * distance).mean(dim=0)  # (K,)
@@ -77,6 +87,10 @@ class CConvTrainable:
     def __init__(self, cfg: Any) -> None:
         self.options = OmegaConf.to_container(cfg.model[NAME], resolve=True)
         self.surface_offset = float(cfg.model.surface_offset)
+        train = cfg.get("train") or {}
+        self.unroll_frames = int(train.get("unroll_frames", 0) or 0)
+        if self.unroll_frames < 0:
+            raise ConfigError(f"train.unroll_frames must be >= 0, got {self.unroll_frames}")
 
     # ------------------------------------------------------------------------ Trainable
     def datasets(self, data_dir: Path) -> tuple[Any, Any]:
@@ -85,8 +99,10 @@ class CConvTrainable:
         # looks one-sided, a false surface point inside the wall that rollouts (the whole tank) never see.
         # Measured on data=cpu at a 3.1 l0 crop: 2,096 of a window's 3,989 surface points were such.
         crop = (REACH + SURFACE_RADIUS) * 2 * float(self.options["particle_radius"])
+        steps, frames = (0, self.unroll_frames) if self.unroll_frames else (UNROLL, 0)
         return tuple(
-            StepWindows(data_dir, split, steps=UNROLL, boundary_radius=crop) for split in ("train", "valid")
+            StepWindows(data_dir, split, steps=steps, frames=frames, boundary_radius=crop)
+            for split in ("train", "valid")
         )
 
     def build_network(self) -> nn.Module:
@@ -117,10 +133,13 @@ class CConvTrainable:
         return {"timestep": dt, "particle_radius": l0 / 2, "gravity": gravity[0].tolist()}
 
     def predict(self, net: nn.Module, batch: Batch) -> tuple[Tensor, Tensor]:
-        """Predicted and true fluid positions of the next two steps with the loss weight, (Nf, 2, 4) each.
+        """Predicted and true fluid motion with the loss weight, (Nf, K, 4) each.
 
-        Channels 0-2: positions (m); channel 3: ``exp(-n / 40)`` of the particle's fluid neighbours at that
-        step (the same in both tensors, so that :func:`dlf_loss` sees it).
+        K: the next 2 solver steps, or the next ``unroll_frames`` stored frames.
+
+        Channels 0-2: displacements from the window's start in the network's ``length_unit``; channel 3:
+        ``exp(-n / 40)`` of the particle's fluid neighbours at that step (the same in both tensors, so that
+        :func:`dlf_loss` sees it).
         """
         fluid = batch.ptype == ParticleType.FLUID
         sample = batch.batch if isinstance(batch, Batch) else torch.zeros_like(batch.ptype)
@@ -128,8 +147,13 @@ class CConvTrainable:
         points, normals, box_batch = self.surface(batch.pos, fluid, sample, l0)
         fluid_batch = sample[fluid]
         pos, vel = batch.pos[fluid], batch.vel[fluid]
+        if self.unroll_frames:
+            every = int(_scalar(batch.frame_steps.double(), "frame_steps"))
+            steps, truth = every * self.unroll_frames, batch.y_frames
+        else:
+            every, steps, truth = 1, UNROLL, batch.y[:, :UNROLL]
         predicted, weights = [], []
-        for _ in range(UNROLL):
+        for k in range(1, steps + 1):
             pos2, vel2 = net.integrate_pos_vel(pos, vel)
             correction, neighbors = net.compute_correction(
                 pos2, vel2, None, points, normals, fluid_batch, box_batch
@@ -137,11 +161,14 @@ class CConvTrainable:
             new_pos = pos2 + correction
             vel = (new_pos - pos) / net.timestep
             pos = new_pos
-            predicted.append(pos)
-            weights.append(torch.exp(-neighbors / NEIGHBOR_SCALE))
+            if k % every == 0:  # a step with a target
+                predicted.append(pos)
+                weights.append(torch.exp(-neighbors / NEIGHBOR_SCALE))
         weight = torch.stack(weights, dim=1).unsqueeze(-1).detach()  # (Nf, 2, 1)
-        prediction = torch.cat([torch.stack(predicted, dim=1), weight], dim=-1)
-        target = torch.cat([batch.y[:, :UNROLL], weight], dim=-1)
+        # displacements from the window's start: the same loss, without float32's rounding of whole positions
+        start, unit = batch.pos[fluid].unsqueeze(1), net.length_unit
+        prediction = torch.cat([(torch.stack(predicted, dim=1) - start) / unit, weight], dim=-1)
+        target = torch.cat([(truth - start) / unit, weight], dim=-1)
         return prediction, target
 
     def surface(self, pos: Tensor, fluid: Tensor, sample: Tensor, l0: float) -> tuple[Tensor, Tensor, Tensor]:
@@ -165,8 +192,11 @@ class CConvTrainable:
         return points[keep], normals[keep], box_batch[keep]
 
     def identity(self) -> dict[str, Any]:
-        """The surface offset (it changes what the network sees of the walls)."""
-        return {"surface_offset": self.surface_offset}
+        """The surface offset (it changes what the network sees of the walls) and the unroll to frames."""
+        identity: dict[str, Any] = {"surface_offset": self.surface_offset}
+        if self.unroll_frames:  # only then, so checkpoints trained without it keep their identity
+            identity["unroll_frames"] = self.unroll_frames
+        return identity
 
 
 def build_trainables(cfg: Any) -> dict[str, CConvTrainable]:

@@ -407,9 +407,15 @@ class StepWindows(_SceneDataset):
     ``y`` (Nf, K, 3) the fluid positions of the next K steps; graph-level ``dt``, ``step``, ``bounds``
     (1, 2, 3) when the scene has a tank, and the scene fields.
 
+    With ``frames`` F > 0 an item also holds ``y_frames`` (Nf, F, 3), the fluid positions of the F stored
+    frames after the sample's (``frame_steps`` (1,) solver steps apart): a longer horizon over which MPS's
+    step-to-step noise averages out (``benchmarks/results/acceleration_noise.md``). Samples too close to the
+    end of their trajectory for F frames are left out.
+
     Args:
         root, split, transform, boundary_radius: as the other datasets.
-        steps: K, the steps after the state each item holds.
+        steps: K, the solver steps after the state each item holds (0 with ``frames`` > 0: none).
+        frames: F, the stored frames after the state each item holds.
 
     Raises:
         TrajectoryFileError: a scene file without ``samples/next`` or with fewer than ``steps`` of them.
@@ -422,22 +428,33 @@ class StepWindows(_SceneDataset):
         transform: Any = None,
         boundary_radius: float | Literal["default"] | None = "default",
         steps: int = 2,
+        frames: int = 0,
     ) -> None:
-        if steps < 1:
-            raise LagfluidError(f"steps must be >= 1, got {steps}")
-        self.steps = steps
+        if steps < 0 or frames < 0 or steps + frames < 1:
+            raise LagfluidError(f"steps and frames must be >= 0 with at least one > 0, got {steps}, {frames}")
+        self.steps, self.frames = steps, frames
         super().__init__(root, split, transform, boundary_radius)
 
     def _count(self, info: SceneInfo) -> int:
         with h5py.File(info.path, "r") as f:
-            nxt = f["samples"].get("next/position")
-            if nxt is None or nxt.shape[1] < self.steps:
-                have = 0 if nxt is None else nxt.shape[1]
-                raise TrajectoryFileError(
-                    f"{info.path} stores {have} solver steps after each sample, this model needs "
-                    f"{self.steps}: generate the dataset with data.next_steps={self.steps}"
-                )
-            return int(nxt.shape[0])
+            samples = int(f["samples/frame"].shape[0])  # the last ones may lack their next steps or frames
+            if self.steps:
+                nxt = f["samples"].get("next/position")
+                if nxt is None or nxt.shape[1] < self.steps:
+                    have = 0 if nxt is None else nxt.shape[1]
+                    raise TrajectoryFileError(
+                        f"{info.path} stores {have} solver steps after each sample, this model needs "
+                        f"{self.steps}: generate the dataset with data.next_steps={self.steps}"
+                    )
+                samples = min(samples, int(nxt.shape[0]))
+            if not self.frames:
+                return samples
+            sample_frames = f["samples/frame"][()]
+        if np.any(np.diff(sample_frames) <= 0):
+            raise TrajectoryFileError(f"{info.path}: samples/frame is not increasing")
+        # the uniformly spaced frames only (TrajectoryWindows): frame k is at solver step k * sample_every
+        last = TrajectoryWindows._uniform_frames(info) - 1
+        return min(samples, int(np.count_nonzero(sample_frames + self.frames <= last)))
 
     def _item(self, file: int, local: int) -> Data:
         f = self._h5(file)
@@ -445,9 +462,18 @@ class StepWindows(_SceneDataset):
         frame = int(s["frame"][local])
         pos, vel = g["position"][frame], g["velocity"][frame]
         b_pos, b_type = self._near_boundary(file, pos)
+        extra = {}
+        if self.steps:
+            nxt = s["next/position"][local, : self.steps]
+            extra["y"] = torch.from_numpy(nxt).transpose(0, 1).contiguous()
+        if self.frames:
+            after = g["position"][frame + 1 : frame + 1 + self.frames]
+            every = int(self.infos[file].attrs["sample_every"])
+            extra["y_frames"] = torch.from_numpy(np.ascontiguousarray(after.transpose(1, 0, 2)))
+            extra["frame_steps"] = torch.tensor([every])
         return Data(
             **_with_boundary(pos, vel, b_pos, b_type),
-            y=torch.from_numpy(s["next/position"][local, : self.steps]).transpose(0, 1).contiguous(),
+            **extra,
             step=torch.tensor([int(s["step"][local])]),
             **self._bounds(file),
             **self._scene_fields(file),
