@@ -146,7 +146,10 @@ def main(argv: list[str] | None = None) -> None:
         "# MPS training targets: smooth field and particle-level noise\n\n"
         f"The fluid's acceleration in the train split of `{args.data}`, split into its mean over each "
         f"particle's neighbourhood ({args.radius} l0, the particle included) and the residual; medians over "
-        "the windows of each group of the RMS over the fluid (m/s^2). The module doc says why it matters.\n\n"
+        "the windows of each group of the RMS over the fluid (m/s^2). A network sees a neighbourhood, so "
+        "it can fit the smooth part; a residual several times it is a target whose loss stalls near that "
+        "of a trivial predictor (`baselines/cconv/weights/MODEL_CARD.md`). Before the first impact "
+        "(steps 0-39) the blocks fall freely or rest before any pressure builds: gravity alone.\n\n"
         f"{table}\n\n## Provenance\n\n{markdown(prov)}\n"
     )
     (out / "acceleration_noise.md").write_text(text)
