@@ -17,7 +17,7 @@ With ``train.unroll_frames`` F > 0 the windows are the sample's state and the ne
 (:class:`~lagfluid.data.datasets.StepWindows` ``frames=F``, e.g. 4 solver steps apart): the network unrolls
 to each of them (``4 F`` steps, the gradient through all) and the loss is the same, at the frames, each
 weighted 1 / F. MPS's per-step accelerations are mostly particle-level noise after the first impact
-(residual 3.6x the smooth field at 2 ms, 1.9x at 8 ms: ``benchmarks/results/acceleration_noise.md``); a
+(residual 3.6x the smooth field at 2 ms, 2.0x at 8 ms: ``benchmarks/results/acceleration_noise.md``); a
 longer horizon averages it out of the target.
 
 There are no normalisation statistics (their network has none); :meth:`CConvTrainable.fit_statistics`
@@ -164,7 +164,7 @@ class CConvTrainable:
             if k % every == 0:  # a step with a target
                 predicted.append(pos)
                 weights.append(torch.exp(-neighbors / NEIGHBOR_SCALE))
-        weight = torch.stack(weights, dim=1).unsqueeze(-1).detach()  # (Nf, 2, 1)
+        weight = torch.stack(weights, dim=1).unsqueeze(-1).detach()  # (Nf, K, 1)
         # displacements from the window's start: the same loss, without float32's rounding of whole positions
         start, unit = batch.pos[fluid].unsqueeze(1), net.length_unit
         prediction = torch.cat([(torch.stack(predicted, dim=1) - start) / unit, weight], dim=-1)
