@@ -49,12 +49,9 @@ class HorizontalSymmetry:
         The reflections are about each point's own domain centre, so a batch of scenes in different boxes
         maps each scene into its own (swapped) box.
         """
-        centre = bounds[..., 0, :] + bounds[..., 1, :]
-        out = x.clone()
-        for axis, flip in ((0, self.flip_x), (1, self.flip_y)):
-            if flip:
-                out[..., axis] = centre[..., axis] - x[..., axis]
-        return out[..., [1, 0, 2]] if self.swap else out
+        # a reflected coordinate c - x is the vector rule's -(x - c), with c = lower + upper on that axis
+        flipped = torch.tensor([self.flip_x, self.flip_y, False], dtype=x.dtype, device=x.device)
+        return self.vectors(x - flipped * (bounds[..., 0, :] + bounds[..., 1, :]))
 
     def vectors(self, v: Tensor) -> Tensor:
         """Vectors ``v`` (..., 3) (velocities, displacements, normals) mapped: signs and the swap only."""
