@@ -25,19 +25,36 @@ def authors_dam_grid() -> Path:
 
 
 @pytest.fixture(scope="session")
-def untrained_weights(tmp_path_factory) -> Path:
-    """Checkpoints of freshly initialised FGN networks (``model=fgn``/``hybrid`` need weights to build).
+def untrained_weights_of(tmp_path_factory):
+    """``model -> directory`` of freshly initialised checkpoints of the networks the model owns.
 
-    Tests that are about the scheme, not about what the shipped weights learned, use these.
+    ``model=fgn``/``hybrid`` and the Table 5 ablations need weights to build; tests that are about the
+    scheme, not about what shipped weights learned, use these.
     """
-    import yaml
+    from hydra import compose, initialize_config_dir
+    from omegaconf import OmegaConf
 
     from lagfluid.models.checkpoint import network_payload, save_checkpoint
-    from lagfluid.models.fgn.networks import build_network
+    from lagfluid.models.fgn.networks import build_network, owned_stages
 
-    out = tmp_path_factory.mktemp("weights")
-    options = yaml.safe_load((REPO / "conf" / "model" / "fgn.yaml").read_text())
-    for kind in ("advection", "collision", "pressure"):
-        net = build_network(kind, options[kind])
-        save_checkpoint(out / f"{kind}.pt", network_payload(net, kind, options[kind], 0, {}))
-    return out
+    made: dict[str, Path] = {}
+
+    def make(model: str = "fgn") -> Path:
+        if model not in made:
+            with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
+                cfg = compose(config_name="config", overrides=[f"model={model}"]).model
+            out = tmp_path_factory.mktemp(f"weights_{model}")
+            for kind in owned_stages(cfg):
+                options = OmegaConf.to_container(cfg[kind], resolve=True)
+                net = build_network(kind, options)
+                save_checkpoint(out / f"{kind}.pt", network_payload(net, kind, options, 0, {}))
+            made[model] = out
+        return made[model]
+
+    return make
+
+
+@pytest.fixture(scope="session")
+def untrained_weights(untrained_weights_of) -> Path:
+    """Checkpoints of freshly initialised FGN networks (see :func:`untrained_weights_of`)."""
+    return untrained_weights_of("fgn")

@@ -10,6 +10,7 @@ import pytest
 import torch
 import yaml
 from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
 from torch_geometric.data import Batch, Data
 
 from lagfluid.config import build_initial_state, build_simulator
@@ -46,9 +47,21 @@ def _model_options(kind, model="fgn"):
     return yaml.safe_load((CONF_DIR / "model" / f"{model}.yaml").read_text())[kind]
 
 
-def _nets(seed=0):
+ABLATIONS = ("fgn_gcn", "fgn_sage", "fgn_mlp")
+
+
+@functools.cache
+def _composed_options(model):
+    from omegaconf import OmegaConf
+
+    return OmegaConf.to_container(_compose(f"model={model}").model, resolve=True)
+
+
+def _nets(seed=0, model="fgn"):
+    """FGN's networks (or an ablation's node-focused ones, with FGN's collision net), random weights."""
     torch.manual_seed(seed)
-    nets = {k: build_network(k, _model_options(k)).eval() for k in ("advection", "collision", "pressure")}
+    options = _composed_options(model)
+    nets = {k: build_network(k, options[k]).eval() for k in ("advection", "collision", "pressure")}
     # non-trivial statistics so that they matter in every check
     nets["advection"].speed.set([0.3], [0.4])
     nets["advection"].log_viscosity.set([-3.0], [1.0])
@@ -95,8 +108,9 @@ def _outputs(nets, data):
     return out
 
 
-def test_networks_are_permutation_invariant():
-    nets, data = _nets(), _scene(5, seed=1)
+@pytest.mark.parametrize("model", ["fgn", *ABLATIONS])
+def test_networks_are_permutation_invariant(model):
+    nets, data = _nets(model=model), _scene(5, seed=1)
     fluid = (data.ptype == ParticleType.FLUID).nonzero().flatten()
     wall = (data.ptype != ParticleType.FLUID).nonzero().flatten()
     # permute within fluid and within wall rows (the loss rows are the fluid rows, in order)
@@ -111,8 +125,9 @@ def test_networks_are_permutation_invariant():
     torch.testing.assert_close(b["pressure"], a["pressure"][perm], atol=1e-5, rtol=1e-5)
 
 
-def test_networks_are_translation_invariant():
-    nets, data = _nets(), _scene(5, seed=4)
+@pytest.mark.parametrize("model", ["fgn", *ABLATIONS])
+def test_networks_are_translation_invariant(model):
+    nets, data = _nets(model=model), _scene(5, seed=4)
     moved = data.clone()
     moved.pos = data.pos + torch.tensor([3.7, -1.2, 0.4])
     a, b = _outputs(nets, data), _outputs(nets, moved)
@@ -122,8 +137,9 @@ def test_networks_are_translation_invariant():
     assert a["advection"].std(dim=0).min() > 0 and a["pressure"].std() > 0
 
 
-def test_two_scenes_batched_equal_each_alone_even_when_they_overlap():
-    nets = _nets()
+@pytest.mark.parametrize("model", ["fgn", *ABLATIONS])
+def test_two_scenes_batched_equal_each_alone_even_when_they_overlap(model):
+    nets = _nets(model=model)
     one, two = _scene(5, seed=5), _scene(4, seed=6, offset=(0.01, 0.0, 0.0))  # same region of space
     two.gravity = torch.tensor([[0.0, 0.0, -30.0]])
     two.viscosity = torch.tensor([0.05])
@@ -155,6 +171,77 @@ def test_kernel_conv_sum_and_mean_aggregations_match_a_dense_reference():
         msg = w @ x if aggregation == "sum" else (w @ x) / wsum.clamp_min(1e-12)
         expected = conv.mlp(conv.node_linear(x) + conv.edge_linear(msg))
         torch.testing.assert_close(conv(x, adj, wsum), expected)
+
+
+def _graph(n, seed):
+    """A random symmetric weighted graph without self-loops: its dense (n, n) weights and CSR adjacency."""
+    from lagfluid.neighbors import kernel_adjacency
+
+    g = torch.Generator().manual_seed(seed)
+    w = torch.rand(n, n, generator=g) * (torch.rand(n, n, generator=g) > 0.5)
+    w = w + w.T
+    w.fill_diagonal_(0)
+    w[0] = w[:, 0] = 0  # an isolated node: SAGE's mean of no neighbours is 0, GCN keeps its self-loop
+    edge = w.nonzero().flip(1).T.contiguous()  # (source j, target i) for A[i, j] = w
+    edge = edge[:, torch.argsort(edge[1] * n + edge[0])]
+    return w, kernel_adjacency(edge, w[edge[1], edge[0]], n)
+
+
+def test_table5_ablation_layers_match_their_textbook_definitions():
+    """GCN: D^-1/2 (A + I) D^-1/2 X W + b; SAGE (mean): W1 x_i + W2 mean_j x_j; none: W x_i + b."""
+    torch.manual_seed(0)
+    n, width = 7, 8
+    w, adj = _graph(n, seed=1)
+    a = (w > 0).to(torch.float32)  # by degree: the kernel weights must not enter
+    x = torch.randn(n, width)
+    act = torch.nn.functional.silu
+    gcn = fgn_mod.node_layer(width, "silu", "gcn")
+    a_hat = a + torch.eye(n)
+    d = a_hat.sum(1)
+    expected = act((a_hat / torch.sqrt(d[:, None] * d[None, :])) @ gcn.conv.lin(x) + gcn.conv.bias)
+    torch.testing.assert_close(gcn(x, fgn_mod.unit_adjacency(adj)), expected)
+    sage = fgn_mod.node_layer(width, "silu", "sage")
+    mean = (a @ x) / a.sum(1, keepdim=True).clamp_min(1)
+    expected = act(sage.conv.lin_l(mean) + sage.conv.lin_r(x))
+    torch.testing.assert_close(sage(x, fgn_mod.unit_adjacency(adj)), expected)
+    mlp = fgn_mod.node_layer(width, "silu", "none")
+    torch.testing.assert_close(mlp(x), act(mlp.linear(x)))
+    with pytest.raises(ConfigError, match=r"unknown aggregation 'max'.*sum, mean, gcn, sage, none"):
+        fgn_mod.node_layer(width, "silu", "max")
+
+
+@pytest.mark.parametrize("aggregation", ["sum", "gcn", "sage", "none"])
+def test_only_the_mlp_ablation_ignores_the_neighbours(aggregation):
+    torch.manual_seed(0)
+    w, adj = _graph(6, seed=2)
+    net = fgn_mod.NodeNet(4, 2, width=8, aggregation=aggregation).eval()
+    x = torch.randn(6, 4)
+    j = int(w[1].nonzero()[0])  # a neighbour of node 1
+    nudged = x.clone()
+    nudged[j] += 1.0
+    effect = (net(nudged, adj)[1] - net(x, adj)[1]).abs().max()
+    assert (effect == 0) if aggregation == "none" else (effect > 1e-4), (aggregation, effect)
+
+
+def test_ablations_own_their_node_nets_and_share_fgns_collision_net(tmp_path):
+    from lagfluid.models.fgn.simulator import SHIPPED_WEIGHTS, load_stage_network
+
+    for model, aggregation in zip(ABLATIONS, ("gcn", "sage", "none"), strict=True):
+        cfg = _compose("task=train", f"model={model}")
+        assert list(build_trainables(cfg)) == ["advection", "pressure"]
+        assert cfg.model.advection.aggregation == cfg.model.pressure.aggregation == aggregation
+        # the collision net is FGN's, from the shipped weights even when model.weights names a run
+        cfg.model.weights = str(tmp_path)
+        _, source = load_stage_network("collision", cfg.model)
+        assert Path(source["source"]).parent == SHIPPED_WEIGHTS
+        with pytest.raises(CheckpointError, match=r"advection network not found: .*advection.pt"):
+            load_stage_network("advection", cfg.model)
+    # FGN's own checkpoints are not an ablation's, even though they would load
+    cfg = _compose("model=fgn_gcn", f"model.weights={SHIPPED_WEIGHTS}")
+    with pytest.raises(
+        CheckpointError, match=r"not model=fgn_gcn's: aggregation 'sum' in the checkpoint, 'gcn'"
+    ):
+        load_stage_network("pressure", cfg.model)
 
 
 def test_collision_net_is_zero_work_without_pairs_and_standardizer_round_trips():
@@ -250,10 +337,10 @@ def tiny_data(tmp_path_factory):
     return out
 
 
-def _train_cfg(data_dir, out_dir, *overrides, iterations=40):
+def _train_cfg(data_dir, out_dir, *overrides, iterations=40, model="fgn"):
     return _compose(
         "task=train",
-        "model=fgn",
+        f"model={model}",
         "data=tiny",
         f"data.out_dir={data_dir}",
         f"out_dir={out_dir}",
@@ -294,6 +381,25 @@ def test_training_lowers_the_loss_and_checkpoints_load_weights_only(trained, kin
     assert ckpt["step"] == 60 and ckpt["kind"] == kind and ckpt["model"] == "fgn"
     net, _ = load_network(trained / f"{kind}.pt", kind)
     assert net.target.std.ne(1).any()  # statistics travel with the weights
+
+
+def test_an_ablation_trains_its_two_nets_and_rolls_out_with_fgns_collision_net(tiny_data, tmp_path):
+    from lagfluid.models.fgn.simulator import SHIPPED_WEIGHTS
+
+    out = tmp_path / "sage"
+    batches = ("train.batch_size.advection=2", "train.batch_size.pressure=2")
+    train(_train_cfg(tiny_data, out, *batches, iterations=60, model="fgn_sage"))  # as the `trained` fixture
+    assert sorted(p.name for p in out.glob("*.pt")) == ["advection.pt", "pressure.pt"]
+    for kind in ("advection", "pressure"):
+        losses = _losses(out / f"{kind}_loss.csv")
+        assert np.mean(losses[-3:]) < 0.8 * np.mean(losses[:3]), (kind, losses)
+        assert read_checkpoint(out / f"{kind}.pt", kind)["options"]["aggregation"] == "sage"
+    cfg = _compose("task=simulate", "model=fgn_sage", f"model.weights={out}", "scene=dam_small", "steps=5")
+    metrics = simulate(OmegaConf.merge(cfg, {"out_dir": str(tmp_path / "roll"), "progress": False}))
+    assert metrics["complete"], metrics["stop_reason"]
+    networks = json.loads(metrics["simulator"]["networks"])
+    assert Path(networks["pressure"]["source"]).parent == out
+    assert Path(networks["collision"]["source"]).parent == SHIPPED_WEIGHTS
 
 
 def test_interrupted_training_resumes_from_its_checkpoint(tiny_data, tmp_path, monkeypatch):

@@ -261,15 +261,22 @@ TINY = replace(
     mps_dts=(0.005,),
     ppe_tols=(1e-1,),
     coarse=((2, None),),
-    simulators=("mps", "fgn", "hybrid_pressure"),
+    simulators=("mps", "fgn", "hybrid_pressure", "fgn_gcn"),
     figures=False,
     description="tiny test profile",
 )
 
 
 @pytest.fixture(scope="module")
-def tiny_run(tmp_path_factory, untrained_weights):
+def tiny_run(tmp_path_factory, untrained_weights, untrained_weights_of):
+    import shutil
+
+    import lagfluid.models.fgn.simulator as fgn_simulator
+
     root = tmp_path_factory.mktemp("tables")
+    shipped = root / "weights"  # the GCN ablation's "shipped" node nets, FGN's collision net beside them
+    shutil.copytree(untrained_weights, shipped / "fgn")
+    shutil.copytree(untrained_weights_of("fgn_gcn"), shipped / "fgn_gcn")
     readme = root / "README.md"
     readme.write_text(f"# x\n\n## Results\n\nprose\n\n{MARK_START}\nold\n{MARK_END}\n\n## Next\n")
     args = argparse.Namespace(
@@ -281,11 +288,13 @@ def tiny_run(tmp_path_factory, untrained_weights):
         readme=True,
         readme_path=str(readme),
     )
-    return root, run_all(TINY, args)
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(fgn_simulator, "WEIGHTS_ROOT", shipped)
+        return root, run_all(TINY, args), args, shipped
 
 
 def test_tiny_profile_writes_every_output(tiny_run):
-    root, written = tiny_run
+    root, written, *_ = tiny_run
     results = root / "results"
     for name in ("report.md", "table2.csv", "table3.csv", "table4.csv", "fig5.csv", "tradeoff.csv"):
         assert (results / f"tables_tiny_{name}").stat().st_size > 100, name
@@ -307,16 +316,40 @@ def test_tiny_profile_writes_every_output(tiny_run):
         rows = list(csv.DictReader(f))
     assert [r["simulator"] for r in rows] == ["Ground truth (MPS)", "FGN", "hybrid: learned pressure"]
     assert all(r["machine"] and r["git_commit"] and r["overrides"] for r in rows)  # provenance per number
+    assert not (results / "tables_tiny_table5.csv").exists()  # not a default part until weights ship
+
+
+def test_table5_sets_the_ablations_beside_table3s_own_fgn_and_mps_rows(tiny_run):
+    import lagfluid.models.fgn.simulator as fgn_simulator
+
+    root, _, args, shipped = tiny_run
+    results = root / "results"
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(fgn_simulator, "WEIGHTS_ROOT", shipped)
+        written = run_all(TINY, argparse.Namespace(**{**vars(args), "only": ["table5"], "readme": False}))
+    assert written["failed"] == []
+    with (results / "tables_tiny_table5.csv").open() as f:
+        table5 = list(csv.DictReader(f))
+    with (results / "tables_tiny_table3.csv").open() as f:
+        table3 = list(csv.DictReader(f))
+    assert [r["simulator"] for r in table5] == ["Ground truth (MPS)", "FGN", "GCN (FGN ablation)"]
+    assert table5[2]["experiment"] == "table5_dam_fgn_gcn" and table5[2]["status"] == "complete"
+    # the same FGN and MPS rows as Table 3's (same scene, steps and reference), the ablation in Table 5 alone
+    same = [(table5[i]["density_error_mean"], table3[i]["density_error_mean"]) for i in (0, 1)]
+    assert all(a == b for a, b in same), same
+    assert not any("GCN" in r["simulator"] for r in table3)
+    report = (results / "tables_tiny_report.md").read_text()
+    assert "## Table 5" in report and "## Tables 1 and 3" in report  # the earlier parts are kept
 
 
 def test_table4_pressure_rows_are_the_rows_with_a_learned_pressure_stage(tiny_run):
-    _, written = tiny_run
+    _, written, *_ = tiny_run
     pressure = [r["case"] for r in written["rows"]["table4"] if r["network"] == "pressure"]
     assert pressure == ["FGN, dam", "hybrid: learned pressure, dam"]
 
 
 def test_tiny_profile_rewrites_only_the_marked_readme_part(tiny_run):
-    root, written = tiny_run
+    root, written, *_ = tiny_run
     text = (root / "README.md").read_text()
     assert written["readme"] and "old" not in text and "prose" in text and text.endswith("## Next\n")
     assert (
@@ -325,7 +358,7 @@ def test_tiny_profile_rewrites_only_the_marked_readme_part(tiny_run):
 
 
 def test_tradeoff_rows_share_one_reference_and_mark_the_front(tiny_run):
-    _, written = tiny_run
+    _, written, *_ = tiny_run
     rows = written["rows"]["tradeoff"]
     labels = {r["simulator"]: r for r in rows}
     assert {"MPS", "FGN", "MPS dt = 5 ms", "MPS PPE tol 0.1 (rel)", "MPS l0 = 10 cm", "FGN dt = 5 ms"} <= set(

@@ -39,6 +39,9 @@ Parts (``--only``):
 * ``table4``: the advection net's normalised MAE (eq. 32) on held-out gravity and viscosity (paper: ten
   sequences, g in [1, 100] m/s^2, nu in [1e-4, 0.1] m^2/s) and the pressure net's PPE relative residual
   (eq. 31), mean +- standard deviation.
+* ``table5``: the paper's aggregator ablation: FGN's node-focused nets with GCN, SAGE (mean) or no
+  aggregation (``model=fgn_gcn``, ``fgn_sage``, ``fgn_mlp``, rows ``table5_<case>_<key>``) beside Table 3's
+  FGN and MPS rows, same metrics. Not in a default run until the ablations' weights ship: ``--only table5``.
 * ``fig5``: FGN's Chamfer distance to MPS against time for dt from 0.5 ms up, until the rollout guard stops
   a run (the largest dt that completes is reported).
 * ``tradeoff``: wall seconds per simulated second against accuracy (Chamfer distance to the reference MPS,
@@ -48,7 +51,7 @@ Parts (``--only``):
 Outputs (``benchmarks/results/``, prefix ``tables`` or ``tables_quick``): ``<prefix>_report.md`` (every
 table, the provenance and each row's overrides), ``<prefix>_parts.json`` (the rendered parts, so that an
 ``--only`` rerun replaces its parts and keeps the others, each saying when it ran),
-``<prefix>_{table3,table2,table4,fig5,tradeoff}.csv``,
+``<prefix>_{table3,table2,table4,table5,fig5,tradeoff}.csv``,
 ``<prefix>_{fig5,tradeoff}.png``, ``<prefix>_fig4_dam_fgn.png`` and ``<prefix>_fig6_dam_fgn.png`` (paper
 Figs. 4 and 6 for FGN on the dam). The full profile also rewrites the README's results tables (between
 ``<!-- tables:start -->`` and ``<!-- tables:end -->``); ``--readme`` makes any profile do so. Rollouts

@@ -248,11 +248,12 @@ class Bench:
         return run
 
     # -------------------------------------------------------------- the rows of each part
-    def table3_runs(self, case: str) -> list[Run]:
+    def table3_runs(self, case: str, table: str = "table3", keys: Sequence[str] | None = None) -> list[Run]:
         """Tables 1/3 rows of ``case`` (``dam`` or ``waterfall``): every simulator against MPS.
 
-        A key without a ``table3_<case>`` row file but with other row files (a Table 2 timing row) is left
-        out (:meth:`~benchmarks.tables.simulators.Simulator.appears_in`).
+        A key without a ``<table>_<case>`` row file but with other row files (a Table 2 timing row) is left
+        out (:meth:`~benchmarks.tables.simulators.Simulator.appears_in`). ``table="table5"``: the rows of
+        the Table 5 ablations (``table5_<case>_<key>``), run the same way. ``keys``: only these simulators.
         """
         p = self.profile
         if case == "dam":
@@ -262,9 +263,11 @@ class Bench:
             ov = self.dam_overrides("waterfall", p.waterfall_duration, extra=p.waterfall)
         runs = []
         for sim in all_simulators(p.simulators):
-            if not sim.appears_in(f"table3_{case}_{sim.key}"):
+            if keys is not None and sim.key not in keys:
                 continue
-            figures = p.figures and case == "dam" and sim.key == FGN
+            if not sim.appears_in(f"{table}_{case}_{sim.key}") or (table != "table3" and not sim.rows):
+                continue
+            figures = p.figures and case == "dam" and sim.key == FGN and table == "table3"
             own = self.own_dt(sim)
             if own is not None:  # the same duration and frames in its own steps, against the same MPS
                 scene, duration, extra = (
@@ -276,7 +279,7 @@ class Bench:
             else:
                 sim_ov = list(ov)
             run = Run(
-                f"table3/{case}/{sim.key}", sim.label, sim, row_file(f"table3_{case}_{sim.key}"), sim_ov
+                f"{table}/{case}/{sim.key}", sim.label, sim, row_file(f"{table}_{case}_{sim.key}"), sim_ov
             )
             runs.append(self.evaluate(run, figures=figures))
         return runs
@@ -284,7 +287,7 @@ class Bench:
     def own_dt(self, sim: Simulator) -> float | None:
         """The simulator's own time step (``Simulator.dt``; None: it steps by the scene's), asked once."""
         if sim.key not in self._own_dt:
-            row = row_file(f"table3_dam_{sim.key}")
+            row = row_file(f"table3_dam_{sim.key}") or row_file(f"table5_dam_{sim.key}")
             head = [f"experiment={row}"] if row else [f"model={sim.model}"]
             try:
                 self._own_dt[sim.key] = build_simulator(

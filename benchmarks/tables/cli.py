@@ -17,8 +17,15 @@ import torch
 import benchmarks.tables
 from benchmarks.provenance import git_commit, markdown, provenance
 from benchmarks.tables.bench import Bench
-from benchmarks.tables.parts import part_fig5, part_table2, part_table3, part_table4, part_tradeoff
-from benchmarks.tables.profiles import FULL, PARTS, QUICK, Profile, estimate_seconds
+from benchmarks.tables.parts import (
+    part_fig5,
+    part_table2,
+    part_table3,
+    part_table4,
+    part_table5,
+    part_tradeoff,
+)
+from benchmarks.tables.profiles import DEFAULT_PARTS, FULL, PARTS, QUICK, Profile, estimate_seconds
 from benchmarks.tables.report import (
     README,
     REPO,
@@ -43,7 +50,7 @@ def run_all(profile: Profile, args: argparse.Namespace) -> dict[str, Any]:
     start = time.perf_counter()
     load = os.getloadavg()[0]
     torch.set_num_threads(int(args.threads))
-    parts = set(args.only or PARTS)
+    parts = set(args.only or DEFAULT_PARTS)
     bench = Bench(profile, args)
     out_dir = Path(args.results)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -64,6 +71,8 @@ def run_all(profile: Profile, args: argparse.Namespace) -> dict[str, Any]:
         part_fig5(bench, report, fig5)
     if "table4" in parts:
         part_table4(bench, report, dam_runs)
+    if "table5" in parts:
+        part_table5(bench, report, dam_runs)
     if "tradeoff" in parts:
         part_tradeoff(bench, report, dam_runs, fig5[0])
 
@@ -91,7 +100,7 @@ def run_all(profile: Profile, args: argparse.Namespace) -> dict[str, Any]:
     run = f"{meta['date']} at commit {meta['script_commit']}"
     sections = merged["sections"]
     body = earlier_parts(merged, "sections", run) + "\n".join(
-        sections[k] for k in ("table3", "table2", "table4", "fig5", "tradeoff") if k in sections
+        sections[k] for k in ("table3", "table2", "table4", "table5", "fig5", "tradeoff") if k in sections
     )
     md = report.path("report.md")
     md.write_text(
@@ -109,7 +118,7 @@ def run_all(profile: Profile, args: argparse.Namespace) -> dict[str, Any]:
             f"row's command and the figures: [`benchmarks/results/{md.name}`]"
             f"(benchmarks/results/{md.name}).\n\n"
         )
-        order = ("table1", "table2", "table4", "fig5", "tradeoff")
+        order = ("table1", "table2", "table4", "table5", "fig5", "tradeoff")
         pieces = merged["readme"]
         section = label + earlier_parts(merged, "readme", run)
         section += "\n".join(pieces[k] for k in order if k in pieces)
@@ -164,7 +173,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         )
         return 2
     print(f"[tables] {profile.name} profile: {profile.description}", flush=True)
-    est = estimate_seconds(profile, args.only or PARTS)
+    est = estimate_seconds(profile, args.only or DEFAULT_PARTS)
     what = f"of {' '.join(args.only)} " if args.only else ""
     print(
         f"[tables] expected runtime {what}~{est / 60:.0f} min on the project's 2-core CPU machine", flush=True

@@ -20,7 +20,7 @@ from benchmarks.tables.rows import (
     table4_rows,
     tradeoff_rows,
 )
-from benchmarks.tables.simulators import FGN, GROUND_TRUTH, simulator
+from benchmarks.tables.simulators import CASES, FGN, GROUND_TRUTH, simulator
 from lagfluid.errors import ConfigError
 
 # The FGN paper's numbers (Li & Barati Farimani): Table 1 (density error mean/max, divergence mean/max,
@@ -46,6 +46,28 @@ PAPER_TABLE2 = {
     "MPS": (None, 313.2, 42.3),
 }
 PAPER_TABLE4 = {"advection": (12.4, 5.6), "pressure": (8.3, 1.1)}  # percent, mean and std
+# Table 5 (ablations of the node-focused nets' aggregator), columns as Table 1's.
+PAPER_TABLE5 = {
+    ("dam", "FGN"): PAPER_TABLE1[("dam", "FGN")],
+    ("dam", "GCN"): (0.0939, 0.3832, 0.0196, 0.0293, 27.7, 31.6),
+    ("dam", "SAGE"): (0.0935, 0.3597, 0.0196, 0.0289, 26.4, 31.3),
+    ("dam", "MLP"): (0.0963, 0.3624, 0.0196, 0.0289, 28.5, 32.8),
+    ("dam", "Ground truth"): PAPER_TABLE1[("dam", "Ground truth")],
+    ("waterfall", "FGN"): PAPER_TABLE1[("waterfall", "FGN")],
+    ("waterfall", "GCN"): (0.0794, 0.3373, 0.0210, 0.0433, 25.5, 31.7),
+    ("waterfall", "SAGE"): (0.0769, 0.3254, 0.0209, 0.0432, 25.3, 31.4),
+    ("waterfall", "MLP"): (0.0830, 0.2967, 0.0209, 0.0433, 26.3, 32.4),
+    ("waterfall", "Ground truth"): PAPER_TABLE1[("waterfall", "Ground truth")],
+}
+ACCURACY_KEYS = (
+    "density_error_mean",
+    "density_error_max",
+    "divergence_mean_per_s",
+    "divergence_max_per_s",
+    "chamfer_mean_mm",
+    "chamfer_max_mm",
+)
+ACCURACY_HEADER = ["density error mean", "max", "divergence mean (1/s)", "max", "Chamfer mean (mm)", "max"]
 
 
 def row_notes(runs: list[Run]) -> str:
@@ -144,6 +166,62 @@ def part_table2(bench: Bench, report: Report) -> None:
         )
 
 
+def accuracy_md(rows: list[dict[str, Any]], cases: dict[str, str]) -> str:
+    """Tables 1/3/5's markdown: case, simulator, the accuracy columns and how each row ended."""
+    cells = [[cases[r["case"]], r["simulator"], *(r[k] for k in ACCURACY_KEYS), r["status"]] for r in rows]
+    return md_table(["case", "simulator", *ACCURACY_HEADER, "status"], cells, "ll" + "r" * 6 + "l")
+
+
+def paper_accuracy_md(paper: dict[tuple[str, str], tuple[Any, ...]], cases: set[str]) -> str:
+    """The paper's rows of an accuracy table (``PAPER_TABLE1`` or ``PAPER_TABLE5``) for ``cases``."""
+    cells = [[c, m, *v] for (c, m), v in paper.items() if c in cases]
+    return md_table(["case", "paper", *ACCURACY_HEADER], cells, "llrrrrrr")
+
+
+def case_names(p: Any) -> dict[str, str]:
+    """How the tables name each case of the profile ``p``: its scene, overrides and duration."""
+    return {
+        "dam": f"`{p.dam_scene}`, {p.dam_duration:g} s",
+        "waterfall": f"`waterfall` {' '.join(p.waterfall or ())}, {p.waterfall_duration:g} s",
+    }
+
+
+def part_table5(bench: Bench, report: Report, dam_runs: list[Run]) -> None:
+    """Table 5: FGN's kernel aggregator against GCN, SAGE (mean) and none (MLP), with FGN's and MPS's rows.
+
+    The ablation rows are the ``table5_<case>_<key>`` files; FGN and the ground truth are Table 3's runs of
+    the same case (the same rows, run once).
+    """
+    p = bench.profile
+    cases = case_names(p)
+    rows: list[dict[str, Any]] = []
+    ablations: list[Run] = []
+    for case in ("dam", "waterfall") if p.waterfall else ("dam",):
+        own = [r for r in dam_runs if r.sim.key in (GROUND_TRUTH, FGN)]
+        if case != "dam":  # Table 3's rows when it ran them (memoised), else these two alone
+            own = bench.table3_runs(case, keys=(GROUND_TRUTH, FGN))
+        ablations += bench.table3_runs(case, table="table5")
+        rows += table3_rows(case, own + [r for r in ablations if r.key.startswith(f"table5/{case}/")])
+    notes = row_notes(ablations)
+    report.csv("table5", rows)
+    report.sections["table5"] = (
+        "## Table 5: the aggregator of FGN's node-focused networks\n\n"
+        "FGN's advection and pressure nets with their two kernel-weighted aggregation layers replaced by "
+        "PyG's `GCNConv` (neighbours weighted by degree), `SAGEConv` (mean) or no aggregation (MLP); "
+        "everything else FGN's, trained by the same recipe on the same data (`model=fgn_gcn`, `fgn_sage`, "
+        "`fgn_mlp`). Metrics and reference as Tables 1/3.\n\n"
+        + accuracy_md(rows, cases)
+        + "\n\n"
+        + (f"{notes}\n" if notes else "")
+        + "The paper's Table 5:\n\n"
+        + paper_accuracy_md(PAPER_TABLE5, {r["case"] for r in rows})
+        + "\n"
+    )
+    report.readme["table5"] = (
+        f"**Table 5** (the aggregator ablation; dam: {cases['dam']}):\n\n{accuracy_md(rows, cases)}\n"
+    )
+
+
 def part_table3(bench: Bench, report: Report, dam_runs: list[Run]) -> None:
     """Tables 1 and 3: accuracy of every simulator against MPS on the dam and the water fall."""
     p = bench.profile
@@ -152,25 +230,19 @@ def part_table3(bench: Bench, report: Report, dam_runs: list[Run]) -> None:
     rows += table3_rows("waterfall", waterfall_runs)
     report.csv("table3", rows)
     notes = row_notes(dam_runs + waterfall_runs)
-    cases = {
-        "dam": f"`{p.dam_scene}`, {p.dam_duration:g} s",
-        "waterfall": f"`waterfall` {' '.join(p.waterfall or ())}, {p.waterfall_duration:g} s",
-    }
-    keys = ("density_error_mean", "density_error_max", "divergence_mean_per_s", "divergence_max_per_s")
-    keys += ("chamfer_mean_mm", "chamfer_max_mm")
-    header = ["density error mean", "max", "divergence mean (1/s)", "max", "Chamfer mean (mm)", "max"]
-    cells = [[cases[r["case"]], r["simulator"], *(r[k] for k in keys), r["status"]] for r in rows]
+    cases = case_names(p)
+    keys, header = ACCURACY_KEYS, ACCURACY_HEADER
     report.sections["table3"] = (
         "## Tables 1 and 3: accuracy against MPS\n\n"
         "`task=evaluate` for every simulator: the same initial state, MPS as the reference. Density error "
         "and divergence over the stored frames (mean and max); Chamfer distance (eq. 29) to MPS at the same "
         "time, mean and max over the frames. The MPS row is the ground truth's own density error and "
         "divergence.\n\n"
-        + md_table(["case", "simulator", *header, "status"], cells, "ll" + "r" * 6 + "l")
+        + accuracy_md(rows, cases)
         + "\n"
         + (f"\n{notes}" if notes else "")
         + "\nThe paper's Tables 1 and 3 (dam ~10k, water fall ~80k particles):\n\n"
-        + md_table(["case", "paper", *header], [[c, m, *v] for (c, m), v in PAPER_TABLE1.items()], "llrrrrrr")
+        + paper_accuracy_md(PAPER_TABLE1, set(CASES))
         + "\n"
     )
     ours, lines = [], []

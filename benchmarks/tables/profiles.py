@@ -7,7 +7,11 @@ from dataclasses import dataclass
 
 from benchmarks.tables.simulators import all_simulators
 
-PARTS = ("table2", "table3", "table4", "fig5", "tradeoff")
+PARTS = ("table2", "table3", "table4", "table5", "fig5", "tradeoff")
+# What a run without --only makes. Table 5 needs the ablations' shipped weights (lagfluid/weights/fgn_gcn,
+# fgn_sage, fgn_mlp); until they ship it runs only when asked for (--only table5, e.g. with the rows'
+# model.weights pointing at training runs), so that the default tables never list untrained rows.
+DEFAULT_PARTS = ("table2", "table3", "table4", "fig5", "tradeoff")
 
 # Held-out materials for Table 4: g = 1..100 m/s^2 and nu = 1e-4..0.1 m^2/s, both log-spaced over ten
 # values and paired by a fixed permutation, so that each range is covered evenly and the pairs are not
@@ -139,7 +143,7 @@ _ROW_OVERHEAD_S = 1.0
 _FRAME_OVERHEAD_S_PER_1K = 0.03  # per stored frame and 1,000 fluid particles (metrics of model and MPS)
 
 
-def estimate_seconds(profile: Profile, parts: Sequence[str] = PARTS) -> float:
+def estimate_seconds(profile: Profile, parts: Sequence[str] = DEFAULT_PARTS) -> float:
     """Expected runtime of ``parts`` of ``profile`` from the per-particle-step costs above.
 
     Follows :func:`benchmarks.tables.cli.run_all`: the dam rows run for every part but Table 2, Fig. 5's
@@ -149,6 +153,7 @@ def estimate_seconds(profile: Profile, parts: Sequence[str] = PARTS) -> float:
     listed = all_simulators(profile.simulators)
     sims = sum(s.appears_in(f"table3_dam_{s.key}") for s in listed)  # the dam rows
     timed = sum(s.appears_in(f"table2_{s.key}") for s in listed)
+    ablations = sum(bool(s.rows) and s.appears_in(f"table5_dam_{s.key}") for s in listed)
     mps, learned = (_US_PER_PARTICLE_STEP[k] * 1e-6 for k in ("mps", "learned"))
     dt = 0.002
 
@@ -179,6 +184,16 @@ def estimate_seconds(profile: Profile, parts: Sequence[str] = PARTS) -> float:
         total += sum(row(n, round(p.dam_duration / d), frames, learned) for d in p.fig5_dts if d != dt)
     if "table3" in parts and p.waterfall:
         total += group(fluid("waterfall", p.waterfall), p.waterfall_duration)
+    if "table5" in parts:  # the ablation rows; FGN's and MPS's are Table 3's
+        nw, cases = fluid("waterfall", p.waterfall or ()), ((n, p.dam_duration),)
+        cases += ((nw, p.waterfall_duration),) if p.waterfall else ()
+        for nc, duration in cases:
+            steps = round(duration / dt)
+            total += ablations * row(nc, steps, round(duration / p.frame_interval) + 1, learned)
+        if p.waterfall and "table3" not in parts:  # then FGN and MPS on the water fall too
+            steps = round(p.waterfall_duration / dt)
+            frames = round(p.waterfall_duration / p.frame_interval) + 1
+            total += steps * nw * mps + row(nw, steps, frames, mps) + row(nw, steps, frames, learned)
     if "table2" in parts:
         nt = fluid(p.timing_scene)
         total += (p.timing_warmup + p.timing_steps) * nt * (mps + (timed - 1) * learned) + 2 * timed

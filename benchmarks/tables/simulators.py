@@ -1,7 +1,8 @@
 """Which simulators the tables compare, in which order and under which label: registry plus row files.
 
 A simulator of the tables is a key ``K`` with row files in Hydra's ``experiment`` group: ``table2_K``
-(Table 2) and ``table3_<case>_K`` (Tables 1/3, one per case). Each row file says how the tables show it::
+(Table 2), ``table3_<case>_K`` (Tables 1/3, one per case) and ``table5_<case>_K`` (the Table 5 ablations,
+beside Table 3's FGN and MPS rows of the case). Each row file says how the tables show it::
 
     table: {label: "hybrid: learned pressure", order: 2, weights: fgn}
 
@@ -68,7 +69,7 @@ CASES = ("dam", "waterfall")
 # Table 4 rolls out on held-out materials.
 GROUND_TRUTH, FGN, LEARNED_ADVECTION = "mps", "fgn", "hybrid_advection"
 
-_ROW = re.compile(rf"^table(?:2|3_(?:{'|'.join(CASES)}))_(?P<key>.+)$")
+_ROW = re.compile(rf"^table(?:2|[35]_(?:{'|'.join(CASES)}))_(?P<key>.+)$")
 _BLOCK_KEYS = {"label", "order", "weights", "note", "timing_steps"}
 
 

@@ -24,6 +24,10 @@ activation                    identity (``LeakyReLU(True)``) SiLU
 advection inputs              vel_dir, speed, is_fluid     + vel, gravity, viscosity (paper eq. 11)
 aggregation                   kernel-weighted sum          kernel-weighted sum (eq. 19's mean: config)
 ============================ ============================ =====================================
+
+The paper's Table 5 ablations swap the node-focused nets' two :class:`KernelConv` layers, nothing else, for
+PyG's ``GCNConv`` (``aggregation: gcn``), ``SAGEConv`` with mean aggregation (``sage``) or no aggregation at
+all (``none``, a per-node MLP layer): ``model=fgn_gcn``, ``fgn_sage``, ``fgn_mlp`` (:func:`node_layer`).
 """
 
 from __future__ import annotations
@@ -34,7 +38,7 @@ from typing import Any
 
 import torch
 from torch import Tensor, nn
-from torch_geometric.nn import MessagePassing
+from torch_geometric.nn import GCNConv, MessagePassing, SAGEConv
 from torch_geometric.utils import scatter
 
 from lagfluid.errors import ConfigError
@@ -53,12 +57,18 @@ __all__ = [
     "build_network",
     "load_network",
     "make_mlp",
+    "node_layer",
+    "owned_stages",
     "parameter_count",
 ]
 
 KINDS = ("advection", "collision", "pressure")
 """FGN's networks, one per learned stage (each a trainable of ``model=fgn``)."""
 _NODE_NET_KEYS = ("width", "layers", "act", "aggregation", "encoder_hidden", "decoder_hidden")
+KERNEL_AGGREGATIONS = ("sum", "mean")
+"""FGN's own aggregations (:class:`KernelConv`): the MPS kernel weights the neighbours."""
+ABLATION_AGGREGATIONS = ("gcn", "sage", "none")
+"""The paper's Table 5 replacements (:class:`GraphConvLayer`, :class:`PointwiseLayer`)."""
 
 ACTIVATIONS: dict[str, type[nn.Module]] = {
     "identity": nn.Identity,
@@ -85,6 +95,19 @@ PRESSURE_FEATURES: dict[str, int] = {
     "is_fluid": 1,
 }
 _EPS_SPEED = 1e-8  # the authors add it to |v| before dividing: walls (v = 0) get vel_dir = 0
+
+
+def owned_stages(model_cfg: Any) -> tuple[str, ...]:
+    """The stages whose networks ``model_cfg`` trains and loads from ``model.weights`` (``model.trains``).
+
+    The others (an ablation's collision net) are another model's, always loaded from the shipped weights.
+    """
+    trains = model_cfg.get("trains")
+    owned = tuple(KINDS) if trains is None else tuple(str(k) for k in trains)
+    unknown = [k for k in owned if k not in KINDS]
+    if unknown or not owned:
+        raise ConfigError(f"model.trains {list(owned)}: unknown {unknown}; available: {', '.join(KINDS)}")
+    return tuple(k for k in KINDS if k in owned)
 
 
 def activation(name: str) -> nn.Module:
@@ -169,8 +192,8 @@ class KernelConv(MessagePassing):
 
     def __init__(self, width: int, act: str, aggregation: str = "sum") -> None:
         super().__init__(aggr="add", flow="source_to_target")
-        if aggregation not in ("sum", "mean"):
-            raise ConfigError(f"aggregation must be 'sum' or 'mean', got {aggregation!r}")
+        if aggregation not in KERNEL_AGGREGATIONS:
+            raise ConfigError(f"KernelConv aggregation must be 'sum' or 'mean', got {aggregation!r}")
         if width % 2:
             raise ConfigError(f"width must be even (the update works at width/2), got {width}")
         self.aggregation = aggregation
@@ -199,8 +222,83 @@ class KernelConv(MessagePassing):
         return adj_t @ x
 
 
+class GraphConvLayer(nn.Module):
+    r"""An ablation layer (paper Table 5): PyG's ``GCNConv`` or ``SAGEConv`` (mean), then the activation.
+
+    .. math::
+        \text{gcn:}\quad f_i' = \sigma\Big(\sum_{j \in N(i) \cup \{i\}} \frac{W f_j}{\sqrt{d_i d_j}} + b\Big)
+        \qquad
+        \text{sage:}\quad f_i' = \sigma\Big(W_1 f_i + W_2 \frac{1}{|N(i)|}\sum_{j \in N(i)} f_j\Big)
+
+    with ``d_i = |N(i)| + 1``: the neighbours count equally, by degree (Kipf and Welling 2016; Hamilton et al.
+    2017), where :class:`KernelConv` weights them by the MPS kernel of their distance, the contrast the
+    paper draws (A.1). The radius graph has no self-loops (the kernel is infinite at r = 0); GCN adds its own.
+    The graph changes every step, so nothing is cached.
+
+    Args:
+        width: embedding size F (input and output).
+        act: activation after the convolution.
+        aggregation: ``"gcn"`` or ``"sage"``.
+
+    Shapes: ``x`` (N, F), ``structure`` (N, N) sparse CSR with unit values -> (N, F).
+    """
+
+    def __init__(self, width: int, act: str, aggregation: str) -> None:
+        super().__init__()
+        if aggregation == "gcn":
+            self.conv: MessagePassing = GCNConv(width, width, cached=False, add_self_loops=True)
+        elif aggregation == "sage":
+            self.conv = SAGEConv(width, width, aggr="mean")
+        else:
+            raise ConfigError(f"GraphConvLayer aggregation must be 'gcn' or 'sage', got {aggregation!r}")
+        self.act = activation(act)
+
+    def forward(self, x: Tensor, structure: Tensor) -> Tensor:
+        """Update (N, F) node embeddings over the unweighted adjacency ``structure`` (rows = targets)."""
+        return self.act(self.conv(x, structure))
+
+
+class PointwiseLayer(nn.Module):
+    """The ``none`` ablation (paper Table 5's MLP): ``f_i' = act(W f_i + b)``, no neighbour enters.
+
+    Shapes: ``x`` (N, F) -> (N, F).
+    """
+
+    def __init__(self, width: int, act: str) -> None:
+        super().__init__()
+        self.linear = nn.Linear(width, width)
+        self.act = activation(act)
+
+    def forward(self, x: Tensor) -> Tensor:
+        """Update every node from itself alone."""
+        return self.act(self.linear(x))
+
+
+def node_layer(width: int, act: str, aggregation: str) -> nn.Module:
+    """One message-passing layer of a node-focused net: FGN's kernel or a Table 5 ablation."""
+    if aggregation in KERNEL_AGGREGATIONS:
+        return KernelConv(width, act, aggregation)
+    if aggregation in ("gcn", "sage"):
+        return GraphConvLayer(width, act, aggregation)
+    if aggregation == "none":
+        return PointwiseLayer(width, act)
+    raise ConfigError(
+        f"unknown aggregation {aggregation!r}; available: "
+        f"{', '.join(KERNEL_AGGREGATIONS + ABLATION_AGGREGATIONS)}"
+    )
+
+
+def unit_adjacency(adj: Tensor) -> Tensor:
+    """(N, N) CSR ``adj`` with every stored value set to 1: who neighbours whom, not how much."""
+    crow, col, ones = adj.crow_indices(), adj.col_indices(), torch.ones_like(adj.values())
+    return torch.sparse_csr_tensor(crow, col, ones, adj.shape, check_invariants=False)  # adj's valid indices
+
+
 class NodeNet(nn.Module):
-    """Encoder MLP -> ``layers`` x [``h = LN(h); h = KernelConv(h) + h``] -> decoder MLP.
+    """Encoder MLP -> ``layers`` x [``h = LN(h); h = layer(h) + h``] -> decoder MLP.
+
+    ``layer`` is :class:`KernelConv` (FGN) or an ablation (:func:`node_layer`); encoder, decoder, norms and
+    residuals are the same for all.
 
     Args:
         in_features, out_features: input and output channels.
@@ -209,7 +307,8 @@ class NodeNet(nn.Module):
             and output sizes).
         layers: message-passing layers (authors: 2).
         act: activation name.
-        aggregation: ``"sum"`` or ``"mean"`` (see :class:`KernelConv`).
+        aggregation: ``"sum"`` or ``"mean"`` (:class:`KernelConv`), or an ablation: ``"gcn"``, ``"sage"``,
+            ``"none"`` (:func:`node_layer`).
 
     Shapes: ``x`` (N, in_features), ``adj`` (N, N) CSR -> (N, out_features).
     """
@@ -232,18 +331,24 @@ class NodeNet(nn.Module):
         self.node_encoder = make_mlp([in_features, encoder_hidden, width], act)
         self.node_decoder = make_mlp([width, decoder_hidden, out_features], act)
         self.mp_layers = nn.ModuleList(
-            nn.ModuleList([nn.LayerNorm(width), KernelConv(width, act, aggregation)]) for _ in range(layers)
+            nn.ModuleList([nn.LayerNorm(width), node_layer(width, act, aggregation)]) for _ in range(layers)
         )
 
     def forward(self, x: Tensor, adj: Tensor) -> Tensor:
         """Run the network on (N, in_features) inputs over the kernel adjacency ``adj``."""
-        weight_sum = None
-        if self.aggregation == "mean":
-            weight_sum = adj @ torch.ones(adj.shape[1], 1, dtype=x.dtype, device=x.device)
+        if self.aggregation in KERNEL_AGGREGATIONS:
+            weight_sum = None
+            if self.aggregation == "mean":
+                weight_sum = adj @ torch.ones(adj.shape[1], 1, dtype=x.dtype, device=x.device)
+            layer_inputs: tuple[Tensor | None, ...] = (adj, weight_sum)
+        elif self.aggregation == "none":
+            layer_inputs = ()
+        else:
+            layer_inputs = (unit_adjacency(adj),)
         h = self.node_encoder(x)
-        for norm, conv in self.mp_layers:
+        for norm, layer in self.mp_layers:
             h = norm(h)  # the residual carries the normalised embedding, as in the authors' NodeNetwork
-            h = conv(h, adj, weight_sum) + h
+            h = layer(h, *layer_inputs) + h
         return self.node_decoder(h)
 
 

@@ -6,8 +6,10 @@ speed for accuracy stage by stage (e.g. exact advection + learned pressure).
 
 Weights: ``model.weights`` is a directory holding ``advection.pt``, ``collision.pt`` and ``pressure.pt``
 (:mod:`lagfluid.models.checkpoint`, as ``task=train`` writes them) or, with ``model.format=original``, the
-authors' arrays (:mod:`lagfluid.models.fgn.original`). ``null`` means the weights shipped in the package
-(``lagfluid/weights/fgn``, see its MODEL_CARD.md).
+authors' arrays (:mod:`lagfluid.models.fgn.original`). ``null`` means the weights shipped in the package:
+per stage, ``lagfluid/weights/<model.shipped.<stage>>`` (``fgn``, see its MODEL_CARD.md; the Table 5
+ablations ``fgn_gcn``, ``fgn_sage``, ``fgn_mlp`` ship their node-focused nets and share FGN's collision net,
+which they do not change).
 """
 
 from __future__ import annotations
@@ -22,7 +24,7 @@ from omegaconf import OmegaConf
 
 from lagfluid.errors import ConfigError
 from lagfluid.models.checkpoint import CheckpointError
-from lagfluid.models.fgn.networks import KINDS, load_network, parameter_count
+from lagfluid.models.fgn.networks import KINDS, load_network, owned_stages, parameter_count
 from lagfluid.models.fgn.original import load_original_network
 from lagfluid.models.fgn.stages import LearnedAdvection, LearnedCollision, LearnedPressure
 from lagfluid.physics.mps import CollisionRule, ExactAdvection, ExactPressure
@@ -31,7 +33,9 @@ from lagfluid.state import parse_dtype
 
 log = logging.getLogger(__name__)
 
-SHIPPED_WEIGHTS = Path(__file__).resolve().parents[2] / "weights" / "fgn"
+WEIGHTS_ROOT = Path(__file__).resolve().parents[2] / "weights"
+SHIPPED_WEIGHTS = WEIGHTS_ROOT / "fgn"
+_IDENTITY_OPTIONS = ("aggregation",)  # what makes a variant another model: never taken from a checkpoint
 CHOICES = ("learned", "exact", "none")
 _EXACT = {"advection": ExactAdvection, "collision": CollisionRule, "pressure": ExactPressure}
 _LEARNED = {"advection": LearnedAdvection, "collision": LearnedCollision, "pressure": LearnedPressure}
@@ -69,12 +73,16 @@ def load_stage_network(kind: str, model_cfg: Any) -> tuple[torch.nn.Module, dict
         return net, {"source": str(weights), "format": "original"}
     if fmt != "lagfluid":
         raise ConfigError(f"model.format must be 'lagfluid' or 'original', got {fmt!r}")
-    directory = Path(weights) if weights else SHIPPED_WEIGHTS
+    shipped = _plain(model_cfg.get("shipped")) or {}
+    if kind not in owned_stages(model_cfg):  # another model's network (an ablation's collision net)
+        weights = None
+    directory = Path(weights) if weights else WEIGHTS_ROOT / str(shipped.get(kind, "fgn"))
     path = directory / f"{kind}.pt"
     if not path.is_file():
         hint = (
             "no weights are shipped for it yet; train them with python -m lagfluid.run task=train "
-            f"model={model_cfg.get('name', 'fgn')} stage={kind} and pass model.weights=<run dir>"
+            f"model={model_cfg.get('name', 'fgn')} (stage={kind} for this one alone) and pass "
+            "model.weights=<run dir>"
             if weights is None
             else "pass the out_dir of a task=train run, or model.weights=null for the shipped ones"
         )
@@ -82,6 +90,12 @@ def load_stage_network(kind: str, model_cfg: Any) -> tuple[torch.nn.Module, dict
     net, ckpt = load_network(path, kind)
     configured = _plain(model_cfg.get(kind))
     differs = {k: (v, ckpt["options"].get(k)) for k, v in configured.items() if ckpt["options"].get(k) != v}
+    wrong = {k: differs[k] for k in _IDENTITY_OPTIONS if k in differs}
+    if wrong:
+        raise CheckpointError(
+            f"{kind} network {path} is not model={model_cfg.get('name')}'s: "
+            + ", ".join(f"{k} {v[1]!r} in the checkpoint, {v[0]!r} in the config" for k, v in wrong.items())
+        )
     if differs:  # the checkpoint's own options win: they are what the weights were trained with
         log.info("%s network from %s uses its own options where the config differs: %s", kind, path, differs)
     return net, {"source": str(path), "format": "lagfluid", "step": ckpt["step"]}

@@ -45,7 +45,7 @@ from torch_geometric.data import Batch, Data
 from lagfluid.data.datasets import AdvectionSamples, CollisionSamples, PressureSamples
 from lagfluid.errors import ConfigError, LagfluidError
 from lagfluid.models.fgn.inputs import advection_inputs, collision_inputs, pressure_inputs
-from lagfluid.models.fgn.networks import KINDS, build_network
+from lagfluid.models.fgn.networks import build_network, owned_stages
 from lagfluid.neighbors import edge_vectors, radius_graph
 from lagfluid.physics import operators as ops
 from lagfluid.physics.stages import SolverSettings, lattice_constants
@@ -374,9 +374,11 @@ class PressureStage(FGNStage):
 
 
 def build_trainables(cfg: Any) -> dict[str, FGNStage]:
-    """``model=fgn`` / ``hybrid``'s trainables by name, from the composed config.
+    """``model=fgn`` / ``hybrid`` / an ablation's trainables by name, from the composed config.
 
-    Reads ``cfg.model.<name>`` (network options), ``cfg.train.materials``, ``cfg.solver`` and ``cfg.seed``.
+    Reads ``cfg.model.<name>`` (network options), ``cfg.model.trains`` (the stages the model owns; FGN all
+    three, the Table 5 ablations advection and pressure), ``cfg.train.materials``, ``cfg.solver`` and
+    ``cfg.seed``.
     """
     fmt = cfg.model.get("format", "lagfluid")
     if fmt != "lagfluid":
@@ -394,4 +396,4 @@ def build_trainables(cfg: Any) -> dict[str, FGNStage]:
         "collision": CollisionStage("collision", plain(cfg.model.collision)),
         "pressure": PressureStage("pressure", plain(cfg.model.pressure)),
     }
-    return {k: stages[k] for k in KINDS}
+    return {k: stages[k] for k in owned_stages(cfg.model)}
