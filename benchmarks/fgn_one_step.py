@@ -46,6 +46,7 @@ from lagfluid.run import CONF_DIR
 RESULTS = Path(__file__).resolve().parent / "results"
 # The paper's Table 4 test materials: |g| in m/s^2 and nu in m^2/s (drawn log-uniformly here).
 TABLE4_GRAVITY, TABLE4_VISCOSITY = (1.0, 100.0), (1.0e-4, 0.1)
+HELD_OUT = "held-out g in [1, 100], nu in [1e-4, 0.1]"
 
 
 def _physical(net: torch.nn.Module, kind: str, pred: torch.Tensor, target: torch.Tensor) -> tuple:
@@ -85,6 +86,40 @@ def score(task: Any, net: torch.nn.Module, items: list) -> dict[str, float]:
     )
 
 
+def one_step_rows(
+    weights: str | os.PathLike, data: str, split: str = "test", max_samples: int = 100, seed: int = 12345
+) -> list[dict[str, Any]]:
+    """Every network's one-step scores on ``split`` of ``data``: a row per (network, case).
+
+    Args:
+        weights: directory of the three checkpoints.
+        data: generated dataset (``task=generate`` out_dir).
+        split: its split to score on.
+        max_samples: the first this many samples of the split.
+        seed: seed of the held-out material draws of the advection net.
+    """
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        cfg = compose(config_name="config", overrides=["task=train", "model=fgn"])
+    settings = SolverSettings.from_config(cfg.solver)
+    trainables = build_trainables(cfg)
+    rows = []
+    for kind in KINDS:
+        net, ckpt = load_network(Path(weights) / f"{kind}.pt", kind)
+        samples = trainables[kind].samples(data, split=split)
+        pick = range(min(len(samples), max_samples))
+        variants = {"test split": samples}
+        if kind == "advection":
+            held_out = ResampledMaterials(
+                samples, TABLE4_GRAVITY, TABLE4_VISCOSITY, True, settings, seed, fixed=True
+            )
+            variants = {HELD_OUT: held_out, "water (stored labels)": samples}
+        for name, dataset in variants.items():
+            result = score(trainables[kind], net, [dataset[i] for i in pick])
+            rows.append({"network": kind, "case": name, "step": ckpt["step"], **result})
+            print(rows[-1], flush=True)
+    return rows
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--weights", default=str(SHIPPED_WEIGHTS), help="directory of the three checkpoints")
@@ -98,25 +133,7 @@ def main(argv: list[str] | None = None) -> None:
     if args.threads:
         torch.set_num_threads(args.threads)
     load = os.getloadavg()[0]
-    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        cfg = compose(config_name="config", overrides=["task=train"])
-    settings = SolverSettings.from_config(cfg.solver)
-    trainables = build_trainables(cfg)
-    rows = []
-    for kind in KINDS:
-        net, ckpt = load_network(Path(args.weights) / f"{kind}.pt", kind)
-        data = trainables[kind].samples(args.data, split=args.split)
-        pick = range(min(len(data), args.max_samples))
-        variants = {"test split": data}
-        if kind == "advection":
-            held_out = ResampledMaterials(
-                data, TABLE4_GRAVITY, TABLE4_VISCOSITY, True, settings, args.seed, fixed=True
-            )
-            variants = {"held-out g in [1, 100], nu in [1e-4, 0.1]": held_out, "water (stored labels)": data}
-        for name, dataset in variants.items():
-            result = score(trainables[kind], net, [dataset[i] for i in pick])
-            rows.append({"network": kind, "case": name, "step": ckpt["step"], **result})
-            print(rows[-1], flush=True)
+    rows = one_step_rows(args.weights, args.data, args.split, args.max_samples, args.seed)
     prov = provenance(
         "benchmarks.fgn_one_step", load, "cpu", weights=str(args.weights), data=args.data, split=args.split
     )

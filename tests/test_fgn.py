@@ -402,6 +402,26 @@ def test_an_ablation_trains_its_two_nets_and_rolls_out_with_fgns_collision_net(t
     assert Path(networks["collision"]["source"]).parent == SHIPPED_WEIGHTS
 
 
+def test_the_recipe_table_measures_rows_and_keeps_earlier_ones(trained, tiny_data, tmp_path):
+    from benchmarks.fgn_recipe import main as recipe
+
+    common = ["--data", str(tiny_data), "--steps", "4", "--threads", "1", "--results", str(tmp_path)]
+    common += ["--runs-dir", str(tmp_path / "runs"), "--reference-dir", str(tmp_path / "reference")]
+    recipe(["--row", "first", str(trained), *common])
+    recipe(["--row", "second", str(trained), "--how", "second", "task=train ...", *common])
+    recipe(["--how", "first", "task=train model=fgn", *common])  # annotates, measures nothing
+    with (tmp_path / "fgn_recipe.csv").open() as f:
+        rows = {r["label"]: r for r in csv.DictReader(f)}
+    assert list(rows) == ["first", "second"]
+    first, second = rows["first"], rows["second"]
+    assert first["dam"] == "complete" and float(first["density_error_mps"]) > 0
+    assert first["density_error"] == second["density_error"]  # same weights, same numbers
+    assert 0 < float(first["prs_rel_l2"]) and -1 <= float(first["prs_corr"]) <= 1
+    assert first["how"] == "task=train model=fgn" and second["how"] == "task=train ..."
+    md = (tmp_path / "fgn_recipe.md").read_text()
+    assert "| first |" in md and "trained by `task=train model=fgn`" in md
+
+
 def test_interrupted_training_resumes_from_its_checkpoint(tiny_data, tmp_path, monkeypatch):
     cfg = _train_cfg(tiny_data, tmp_path, "stage=collision", iterations=40)
     calls = {"n": 0}

@@ -1,0 +1,248 @@
+r"""FGN's training recipe, one lever at a time: one-step scores and the 1 s dam, a row per set of weights.
+
+Each row is a directory of FGN's three checkpoints (``advection.pt``, ``collision.pt``, ``pressure.pt``; a
+lever that retrains one network links the other two from the baseline) or the FGN authors' published
+networks. For each it measures
+
+* one step on the test split of a dataset (:func:`benchmarks.fgn_one_step.one_step_rows`): the advection
+  net's normalised MAE at held-out materials and at water, the collision net's relative MAE, the pressure
+  net's relative L2 error against the PPE and its correlation (not for the authors' networks, which take
+  other inputs);
+* the 1 s dam collapse against MPS (``task=evaluate``, as the tables' Table 3 row): density error and
+  velocity divergence over the frames (and their ratio to MPS's on the same frames), the Chamfer distance to
+  MPS, the pressure's relative PPE residual (eq. 31), whether the rollout completed.
+
+Rows accumulate in ``benchmarks/results/fgn_recipe.csv`` by label (a rerun of a label replaces its row, each
+row keeps its own date, commit and command), and ``fgn_recipe.md`` is rewritten from it.
+
+Usage::
+
+    python -m benchmarks.fgn_recipe --row "shipped" lagfluid/weights/fgn \\
+        --original "authors' weights" ../shared/reference/fgn_original/checkpoints --threads 2
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import math
+import os
+import re
+import shlex
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import torch
+from hydra import compose, initialize_config_dir
+
+from benchmarks.fgn_one_step import HELD_OUT, one_step_rows
+from benchmarks.provenance import git_commit, markdown, provenance
+from lagfluid.evaluate import evaluate
+from lagfluid.run import CONF_DIR
+
+RESULTS = Path(__file__).resolve().parent / "results"
+COLUMNS = (
+    "label",
+    "model",
+    "weights",
+    "adv_nmae_held_out",
+    "adv_nmae_water",
+    "col_rel_mae",
+    "prs_rel_l2",
+    "prs_corr",
+    "dam",
+    "density_error",
+    "density_error_mps",
+    "density_ratio",
+    "divergence",
+    "divergence_mps",
+    "divergence_ratio",
+    "chamfer_mean_mm",
+    "chamfer_max_mm",
+    "ppe_residual",
+    "how",
+    "date",
+    "git_commit",
+    "command",
+)
+
+
+def _summary(metrics: dict[str, Any], *keys: str) -> float:
+    node: Any = metrics.get("summary", {})
+    for k in keys:
+        node = node.get(k) if isinstance(node, dict) else None
+    return float(node) if isinstance(node, (int, float)) else math.nan
+
+
+def dam_row(
+    model: str, weights: str, steps: int, threads: int, runs_dir: Path, slug: str, reference_dir: str | None
+) -> dict[str, Any]:
+    """The dam columns of a row: ``task=evaluate`` of ``model`` with ``weights`` for ``steps`` of 2 ms.
+
+    ``reference_dir``: the cache of MPS references (None: ``evaluate.reference_dir``'s default).
+    """
+    overrides = [
+        "task=evaluate",
+        f"model={model}",
+        f"model.weights={weights}",
+        "scene=dam",
+        f"steps={steps}",
+        "write_every=20",
+        f"threads={threads}",
+        "progress=false",
+        "evaluate.figures=false",
+        f"out_dir={runs_dir / slug}",
+        *([f"evaluate.reference_dir={reference_dir}"] if reference_dir else []),
+    ]
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        cfg = compose(config_name="config", overrides=overrides)
+    m = evaluate(cfg)
+    density, density_mps = (
+        _summary(m, "density_error", "model", "mean"),
+        _summary(m, "density_error", "reference", "mean"),
+    )
+    div, div_mps = (
+        _summary(m, "velocity_divergence_per_s", "model", "mean"),
+        _summary(m, "velocity_divergence_per_s", "reference", "mean"),
+    )
+    return {
+        "dam": "complete" if m["complete"] else f"stopped at step {m['steps']}",
+        "density_error": density,
+        "density_error_mps": density_mps,
+        "density_ratio": density / density_mps,
+        "divergence": div,
+        "divergence_mps": div_mps,
+        "divergence_ratio": div / div_mps,
+        "chamfer_mean_mm": _summary(m, "chamfer_mm", "mean"),
+        "chamfer_max_mm": _summary(m, "chamfer_mm", "max"),
+        "ppe_residual": _summary(m, "ppe_relative_residual", "mean"),
+    }
+
+
+def one_step_columns(weights: str, data: str) -> dict[str, Any]:
+    """The one-step columns of a row (:func:`benchmarks.fgn_one_step.one_step_rows` on the test split)."""
+    rows = {(r["network"], r["case"]): r for r in one_step_rows(weights, data)}
+    return {
+        "adv_nmae_held_out": rows[("advection", HELD_OUT)]["nmae"],
+        "adv_nmae_water": rows[("advection", "water (stored labels)")]["nmae"],
+        "col_rel_mae": rows[("collision", "test split")]["rel_mae"],
+        "prs_rel_l2": rows[("pressure", "test split")]["rel_l2"],
+        "prs_corr": rows[("pressure", "test split")]["corr"],
+    }
+
+
+def _cell(value: Any) -> str:
+    if value is None or value == "":
+        return "-"
+    if isinstance(value, float):
+        return "-" if not math.isfinite(value) else f"{value:.3g}"
+    try:
+        return _cell(float(value)) if re.fullmatch(r"-?[\d.]+(e-?\d+)?|nan", str(value)) else str(value)
+    except ValueError:
+        return str(value)
+
+
+def write_tables(rows: list[dict[str, Any]], out: Path, data: str, prov: dict[str, str]) -> str:
+    """Write ``fgn_recipe.csv`` (every column) and ``fgn_recipe.md``; returns the markdown."""
+    with open(out / "fgn_recipe.csv", "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(COLUMNS))
+        writer.writeheader()
+        writer.writerows(rows)
+    shown = (
+        ("row", "label"),
+        ("adv. nMAE held-out", "adv_nmae_held_out"),
+        ("adv. nMAE water", "adv_nmae_water"),
+        ("col. rel. MAE", "col_rel_mae"),
+        ("pres. rel. L2", "prs_rel_l2"),
+        ("pres. corr.", "prs_corr"),
+        ("dam, 1 s", "dam"),
+        ("density error (x MPS)", "density_ratio"),
+        ("divergence (x MPS)", "divergence_ratio"),
+        ("Chamfer mean / max (mm)", "chamfer"),
+        ("PPE residual", "ppe_residual"),
+    )
+    lines = ["| " + " | ".join(h for h, _ in shown) + " |", "|" + " --- |" * len(shown)]
+    for r in rows:
+        cells = {k: _cell(r.get(k, "")) for k in COLUMNS}
+        cells["chamfer"] = f"{_cell(r.get('chamfer_mean_mm'))} / {_cell(r.get('chamfer_max_mm'))}"
+        lines.append("| " + " | ".join(cells[k] for _, k in shown) + " |")
+    origin = "\n".join(
+        f"- {r['label']}: `{r['weights']}`"
+        + (f", trained by `{r['how']}`" if r.get("how") else "")
+        + f"; measured {r['date']}, commit {r['git_commit']}"
+        for r in rows
+    )
+    text = (
+        "# FGN's training recipe, one lever at a time\n\n"
+        f"One step on the test split of `{data}` (`benchmarks/fgn_one_step.py`: advection normalised MAE "
+        "(eq. 32) at held-out g and nu and at water, collision relative MAE, pressure relative L2 error "
+        "against the PPE and correlation; '-' for the authors' networks, which take other inputs) and the "
+        "authors' 4,000-particle dam for 1 s against MPS (`task=evaluate`, as Table 3: density error and "
+        "divergence over the frames as multiples of MPS's own on the same frames, Chamfer distance to MPS, "
+        "the pressure's relative PPE residual of eq. 31). Goal (issue 16): density error <= 1.1x MPS, "
+        "divergence <= 2x, Chamfer <= 18 mm.\n\n"
+        + "\n".join(lines)
+        + f"\n\n## Where each row's weights came from\n\n{origin}\n\n## Provenance of the last run\n\n"
+        + markdown(prov)
+        + "\n"
+    )
+    (out / "fgn_recipe.md").write_text(text)
+    return text
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--row", nargs=2, action="append", default=[], metavar=("LABEL", "DIR"),
+                    help="a row: FGN's three checkpoints in DIR")  # fmt: skip
+    ap.add_argument("--original", nargs=2, action="append", default=[], metavar=("LABEL", "DIR"),
+                    help="a row: the FGN authors' networks in DIR (model=fgn_original)")  # fmt: skip
+    ap.add_argument("--how", nargs=2, action="append", default=[], metavar=("LABEL", "COMMAND"),
+                    help="how a row's weights were trained (its task=train command)")  # fmt: skip
+    ap.add_argument("--data", default="data/cpu", help="dataset whose test split scores one step")
+    ap.add_argument("--steps", type=int, default=500, help="dam steps of 2 ms (500: 1 s)")
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--runs-dir", default="runs/recipe/eval", help="the rollouts")
+    ap.add_argument("--reference-dir", default=None, help="cache of MPS references (default: evaluate's)")
+    ap.add_argument("--results", default=str(RESULTS))
+    args = ap.parse_args(argv)
+    if not (args.row or args.original or args.how):
+        ap.error("give at least one --row, --original or --how (which only annotates a measured row)")
+    torch.set_num_threads(args.threads)
+    start, load = time.perf_counter(), os.getloadavg()[0]
+    out = Path(args.results)
+    out.mkdir(parents=True, exist_ok=True)
+    known: dict[str, dict[str, Any]] = {}
+    if (out / "fgn_recipe.csv").is_file():
+        with open(out / "fgn_recipe.csv", newline="") as f:
+            known = {r["label"]: r for r in csv.DictReader(f)}
+    command = "python -m benchmarks.fgn_recipe " + shlex.join(sys.argv[1:] if argv is None else argv)
+    stamp = {
+        "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+        "git_commit": git_commit(),
+        "command": command,
+    }
+    runs_dir = Path(args.runs_dir)
+    how = dict(args.how)
+    for label, text in how.items():  # annotate rows measured earlier (a row measured now takes it below)
+        if label in known:
+            known[label]["how"] = text
+    rows = [(r, "fgn") for r in args.row] + [(r, "fgn_original") for r in args.original]
+    for (label, weights), model in rows:
+        slug = re.sub(r"[^A-Za-z0-9]+", "_", label).strip("_")[:60]
+        row: dict[str, Any] = {"label": label, "model": model, "weights": weights, **stamp}
+        row["how"] = how.get(label, known.get(label, {}).get("how", ""))
+        if model == "fgn":
+            row |= one_step_columns(weights, args.data)
+        row |= dam_row(model, weights, args.steps, args.threads, runs_dir, slug, args.reference_dir)
+        known[label] = row
+        print(f"[fgn_recipe] {label}: {row}", flush=True)
+    prov = provenance(
+        "benchmarks.fgn_recipe", load, command=command, runtime_s=f"{time.perf_counter() - start:.0f}"
+    )
+    print(write_tables(list(known.values()), out, args.data, prov))
+
+
+if __name__ == "__main__":
+    main()
