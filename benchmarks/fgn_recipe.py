@@ -136,6 +136,8 @@ def one_step_columns(weights: str, data: str) -> dict[str, Any]:
 def _cell(value: Any) -> str:
     if value is None or value == "":
         return "-"
+    if isinstance(value, str) and "|" in value:  # a label's |v| must not split the markdown row
+        return value.replace("|", "\\|")
     if isinstance(value, float):
         return "-" if not math.isfinite(value) else f"{value:.3g}"
     try:
