@@ -25,7 +25,6 @@ Writes ``benchmarks/results/acceleration_noise.{md,csv}`` with provenance.
 from __future__ import annotations
 
 import argparse
-import csv
 import os
 import time
 from collections import defaultdict
@@ -35,7 +34,7 @@ import numpy as np
 from scipy import sparse
 from scipy.spatial import cKDTree
 
-from benchmarks.provenance import markdown, provenance
+from benchmarks.provenance import provenance, write_results
 from lagfluid.data.datasets import StepWindows, TrajectoryWindows, load_metadata
 from lagfluid.state import ParticleType
 
@@ -127,12 +126,6 @@ def main(argv: list[str] | None = None) -> None:
     args = ap.parse_args(argv)
     start, load = time.perf_counter(), os.getloadavg()[0]
     rows = measure(args.data, args.every, args.radius)
-    out = Path(args.results)
-    out.mkdir(parents=True, exist_ok=True)
-    with open(out / "acceleration_noise.csv", "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
-        writer.writeheader()
-        writer.writerows(rows)
     prov = provenance(
         "benchmarks.acceleration_noise",
         load,
@@ -140,20 +133,16 @@ def main(argv: list[str] | None = None) -> None:
         f"--radius {args.radius}",
         runtime_s=f"{time.perf_counter() - start:.0f}",
     )
-    header = "| " + " | ".join(rows[0]) + " |\n| " + " | ".join("---" for _ in rows[0]) + " |\n"
-    table = header + "\n".join("| " + " | ".join(str(r[k]) for k in rows[0]) + " |" for r in rows)
-    text = (
+    intro = (
         "# MPS training targets: smooth field and particle-level noise\n\n"
         f"The fluid's acceleration in the train split of `{args.data}`, split into its mean over each "
         f"particle's neighbourhood ({args.radius} l0, the particle included) and the residual; medians over "
         "the windows of each group of the RMS over the fluid (m/s^2). A network sees a neighbourhood, so "
         "it can fit the smooth part; a residual several times it is a target whose loss stalls near that "
         "of a trivial predictor (`baselines/cconv/weights/MODEL_CARD.md`). Before the first impact "
-        "(steps 0-39) the blocks fall freely or rest before any pressure builds: gravity alone.\n\n"
-        f"{table}\n\n## Provenance\n\n{markdown(prov)}\n"
+        "(steps 0-39) the blocks fall freely or rest before any pressure builds: gravity alone."
     )
-    (out / "acceleration_noise.md").write_text(text)
-    print(text)
+    print(write_results(Path(args.results), "acceleration_noise", rows, intro, prov))
 
 
 if __name__ == "__main__":

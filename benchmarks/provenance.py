@@ -5,6 +5,7 @@ Every committed result carries this block, so a number can be traced to the run 
 
 from __future__ import annotations
 
+import csv
 import datetime as dt
 import os
 import platform
@@ -68,3 +69,28 @@ def provenance(module: str, load_before: float, device: str = "cpu", **extra: st
 def markdown(prov: dict[str, str]) -> str:
     """The provenance as a markdown list."""
     return "\n".join(f"- {k}: {v}" for k, v in prov.items())
+
+
+def write_results(out: Path, name: str, rows: list[dict], intro: str, prov: dict[str, str]) -> str:
+    """Write ``out/<name>.csv`` (the rows) and ``out/<name>.md`` (``intro``, the rows, the provenance).
+
+    Args:
+        out: the results folder (made if missing).
+        name: file stem, e.g. ``wall_approach``.
+        rows: one dict per row, every row with the first row's keys (the columns, in order).
+        intro: the markdown before the table: a ``#`` title and what the table says.
+        prov: :func:`provenance`'s block.
+
+    Returns:
+        The markdown written.
+    """
+    out.mkdir(parents=True, exist_ok=True)
+    with open(out / f"{name}.csv", "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    header = "| " + " | ".join(rows[0]) + " |\n| " + " | ".join("---" for _ in rows[0]) + " |\n"
+    table = header + "\n".join("| " + " | ".join(str(r[k]) for k in rows[0]) + " |" for r in rows)
+    text = f"{intro}\n\n{table}\n\n## Provenance\n\n{markdown(prov)}\n"
+    (out / f"{name}.md").write_text(text)
+    return text

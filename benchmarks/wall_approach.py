@@ -18,7 +18,6 @@ Writes ``benchmarks/results/wall_approach.{md,csv}`` with provenance.
 from __future__ import annotations
 
 import argparse
-import csv
 import os
 import time
 from pathlib import Path
@@ -26,7 +25,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from benchmarks.provenance import markdown, provenance
+from benchmarks.provenance import provenance, write_results
 from lagfluid.data.datasets import load_metadata
 from lagfluid.data.store import read_trajectory
 
@@ -88,12 +87,6 @@ def main(argv: list[str] | None = None) -> None:
     for label, path in zip(labels, args.rollouts, strict=True):
         trajectory = read_trajectory(path)
         rows.append(summary(label, boundary_distances(trajectory, l0), len(trajectory["position"])))
-    out = Path(args.results)
-    out.mkdir(parents=True, exist_ok=True)
-    with open(out / "wall_approach.csv", "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
-        writer.writeheader()
-        writer.writerows(rows)
     command = f"python -m benchmarks.wall_approach --data {args.data} --every {args.every}"
     if args.rollouts:
         command += " --rollouts " + " ".join(args.rollouts)
@@ -101,18 +94,14 @@ def main(argv: list[str] | None = None) -> None:
     prov = provenance(
         "benchmarks.wall_approach", load, command=command, runtime_s=f"{time.perf_counter() - start:.0f}"
     )
-    header = "| " + " | ".join(rows[0]) + " |\n| " + " | ".join("---" for _ in rows[0]) + " |\n"
-    table = header + "\n".join("| " + " | ".join(str(r[k]) for k in rows[0]) + " |" for r in rows)
-    text = (
+    intro = (
         "# How close the fluid comes to the boundary particles\n\n"
         "Distance from each fluid particle to its nearest boundary (wall or dummy) particle, in l0, over the "
         "stored frames: the smallest, low percentiles and the fraction of particle-frames below 0.5, 0.7 "
         "and 0.8 l0. A learned model has seen the wall's push only down to the distances its training data "
-        "reaches; closer than that it extrapolates (`benchmarks/wall_approach.py`).\n\n"
-        f"{table}\n\n## Provenance\n\n{markdown(prov)}\n"
+        "reaches; closer than that it extrapolates (`benchmarks/wall_approach.py`)."
     )
-    (out / "wall_approach.md").write_text(text)
-    print(text)
+    print(write_results(Path(args.results), "wall_approach", rows, intro, prov))
 
 
 if __name__ == "__main__":
