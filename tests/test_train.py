@@ -70,7 +70,8 @@ def test_fgn_trainables_come_from_the_registry():
 
 
 def test_a_model_without_trainables_is_a_clear_error(tiny_data, tmp_path):
-    with pytest.raises(UnknownNameError, match=r"model 'mps' has nothing to train.*fgn, gns, hybrid"):
+    listed = r"model 'mps' has nothing to train.*fgn, fgn_gcn, fgn_mlp, fgn_sage, gns, hybrid"
+    with pytest.raises(UnknownNameError, match=listed):
         train(_compose("task=train", "model=mps", f"data.out_dir={tiny_data}", f"out_dir={tmp_path}"))
 
 
