@@ -22,6 +22,10 @@ statistics, options, optimizer, RNG, step; :mod:`lagfluid.models.checkpoint`) an
 rename). A rerun with the same command continues from it (weights, optimizer, RNG state and CSV rows after
 the checkpoint dropped); a finished trainable is skipped; a checkpoint of other network options, data or
 settings is an error, never silently mixed. A non-finite loss stops the run naming the iteration.
+
+**Export.** With ``export_to=DIR`` the trained networks are copied into ``DIR`` once every trainable of the
+run has finished, without optimizer and RNG state (:func:`lagfluid.models.checkpoint.export_weights`; the
+``retrain_*`` experiments set it to the shipped weights' folder).
 """
 
 from __future__ import annotations
@@ -46,7 +50,7 @@ from tqdm import tqdm
 import lagfluid
 from lagfluid.data.datasets import load_metadata
 from lagfluid.errors import ConfigError, LagfluidError
-from lagfluid.models.checkpoint import network_payload, read_checkpoint, save_checkpoint
+from lagfluid.models.checkpoint import export_weights, network_payload, read_checkpoint, save_checkpoint
 from lagfluid.models.trainable import Trainable
 from lagfluid.registry import get_trainables
 
@@ -335,4 +339,11 @@ def train(cfg: DictConfig) -> list[dict[str, Any]]:
         torch.set_num_threads(int(cfg.threads))
     out_dir = Path(str(cfg.out_dir))
     out_dir.mkdir(parents=True, exist_ok=True)
-    return [train_one(cfg, trainables[name], out_dir) for name in names]
+    summaries = [train_one(cfg, trainables[name], out_dir) for name in names]
+    export_to = cfg.get("export_to")
+    if export_to:
+        Path(str(export_to)).mkdir(parents=True, exist_ok=True)
+        for name in names:  # only this run's trainables: out_dir may hold other checkpoints
+            written = export_weights(out_dir, export_to, kinds=[name])
+            log.info("%s: exported to %s", name, written[0])
+    return summaries

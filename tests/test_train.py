@@ -156,3 +156,25 @@ def test_init_from_fine_tunes_trained_weights_with_their_statistics(tiny_data, t
                 f"+train.init_from={first}",
             )
         )
+
+
+def test_export_to_copies_the_trained_networks_without_optimizer_state(tiny_data, tmp_path, monkeypatch):
+    monkeypatch.setitem(registry._REGISTERED_TRAINABLES, "fgn", lambda cfg: {"line": LinearFit("line")})
+    exported = tmp_path / "shipped"
+    train(
+        _compose(
+            "task=train",
+            "model=fgn",
+            "data=tiny",
+            f"data.out_dir={tiny_data}",
+            f"out_dir={tmp_path / 'run'}",
+            f"export_to={exported}",
+            "progress=false",
+            "+train.iterations.line=3",
+            "+train.batch_size.line=2",
+        )
+    )
+    run, shipped = read_checkpoint(tmp_path / "run" / "line.pt"), read_checkpoint(exported / "line.pt")
+    assert "optimizer" in run and "optimizer" not in shipped and "rng" not in shipped
+    torch.testing.assert_close(shipped["state_dict"], run["state_dict"])
+    assert shipped["step"] == 3 and shipped["meta"]["stats"] == run["meta"]["stats"]

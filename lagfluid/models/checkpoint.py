@@ -21,6 +21,7 @@ Writes are atomic: a temporary file in the same directory, then a rename.
 from __future__ import annotations
 
 import os
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -91,15 +92,28 @@ def read_checkpoint(
     return ckpt
 
 
-def export_weights(run_dir: str | os.PathLike, dest_dir: str | os.PathLike) -> list[Path]:
-    """Copy every network checkpoint of a training run without optimizer and RNG state (shipping size).
+def export_weights(
+    run_dir: str | os.PathLike, dest_dir: str | os.PathLike, kinds: Sequence[str] | None = None
+) -> list[Path]:
+    """Copy a training run's network checkpoints without optimizer and RNG state (shipping size).
 
     ``python -m lagfluid.models.checkpoint RUN_DIR DEST_DIR`` does the same from the shell.
 
+    Args:
+        run_dir: a ``task=train`` out_dir.
+        dest_dir: the folder to write ``<kind>.pt`` into (it must exist).
+        kinds: the checkpoints to copy by name (``advection``, ``gns``...); None = every ``*.pt``.
+
     Raises:
-        CheckpointError: ``run_dir`` holds no checkpoint, or one that is unreadable.
+        CheckpointError: ``run_dir`` holds no checkpoint (or not one of ``kinds``), or one that is unreadable.
     """
-    paths = sorted(Path(run_dir).glob("*.pt"))
+    if kinds is None:
+        paths = sorted(Path(run_dir).glob("*.pt"))
+    else:
+        paths = [Path(run_dir) / f"{kind}.pt" for kind in kinds]
+        missing = [p.name for p in paths if not p.is_file()]
+        if missing:
+            raise CheckpointError(f"no {', '.join(missing)} in {run_dir}")
     if not paths:
         raise CheckpointError(f"no checkpoints (*.pt) in {run_dir}")
     written = []
