@@ -51,6 +51,7 @@ import h5py
 import numpy as np
 import torch
 from scipy.spatial import cKDTree
+from torch import Tensor
 from torch_geometric.data import Data, Dataset
 
 from lagfluid.data.layout import (
@@ -63,7 +64,7 @@ from lagfluid.data.layout import (
 )
 from lagfluid.data.store import TrajectoryFileError
 from lagfluid.errors import LagfluidError
-from lagfluid.state import ParticleType
+from lagfluid.state import ParticleState, ParticleType, SceneParams
 
 __all__ = [
     "AdvectionSamples",
@@ -164,10 +165,18 @@ class _SceneDataset(Dataset):
 
     def get(self, idx: int) -> Data:
         """Item ``idx``."""
+        return self._item(*self._locate(idx))
+
+    def scene_attributes(self, idx: int) -> dict[str, Any]:
+        """Attributes of item ``idx``'s scene file (``dt``, ``l0``, ``n0``, the generating ``config``...)."""
+        return dict(self.infos[self._locate(idx)[0]].attrs)
+
+    def _locate(self, idx: int) -> tuple[int, int]:
+        """``(file, local index)`` of item ``idx``."""
         if not 0 <= idx < self.len():
             raise IndexError(f"index {idx} out of range for {self.len()} items")
         file = int(np.searchsorted(self._offsets, idx, side="right")) - 1
-        return self._item(file, idx - int(self._offsets[file]))
+        return file, idx - int(self._offsets[file])
 
     def __getstate__(self) -> dict[str, Any]:
         # HDF5 handles do not survive pickling (DataLoader workers with spawn); they reopen lazily.
@@ -305,6 +314,49 @@ class PressureSamples(_SceneDataset):
             step=torch.tensor([int(f["samples/step"][local])]),
             **self._scene_fields(file),
         )
+
+    def scene_state(self, idx: int, boundary_radius: float | None = None) -> tuple[ParticleState, Tensor]:
+        """The particles of item ``idx``'s scene at the pressure stage's input.
+
+        Args:
+            idx: the item.
+            boundary_radius: keep only the boundary particles within this distance (m) of the fluid; None:
+                the whole boundary.
+
+        Returns:
+            The state (fluid ``x**``, ``v**``, then the kept boundary, dummies included, at rest; float64)
+            and each row's ``particle_id`` (N,): with :meth:`scene_attributes`, what rebuilds the step's PPE
+            (:class:`lagfluid.models.fgn.ppe_term.WithPPESystem`).
+        """
+        file, local = self._locate(idx)
+        s = self._h5(file)["samples/pressure"]
+        fluid = s["position"][local]
+        b = self._boundary(file)
+        keep = np.ones(len(b["pos"]), bool)
+        if boundary_radius is not None and len(b["pos"]):
+            dist, _ = cKDTree(fluid).query(b["pos"], k=1, distance_upper_bound=boundary_radius)
+            keep = dist < boundary_radius
+        arrays = _with_boundary(fluid, s["velocity"][local], b["pos"][keep], b["ptype"][keep])
+        rows = np.concatenate([np.arange(len(fluid)), len(fluid) + np.flatnonzero(keep)])
+        a = self.infos[file].attrs
+        params = SceneParams(
+            gravity=tuple(float(g) for g in a["gravity"]),
+            viscosity=float(a["viscosity"]),
+            density=float(a["density"]),
+            dt=float(a["dt"]),
+            l0=float(a["l0"]),
+            dim=int(a["dim"]),
+        )
+        bounds = self._bounds(file).get("bounds")
+        state = ParticleState(
+            pos=arrays["pos"].double(),
+            vel=arrays["vel"].double(),
+            ptype=arrays["ptype"],
+            params=params,
+            bounds=None if bounds is None else bounds[0].double(),
+            check=False,
+        )
+        return state, torch.from_numpy(rows)
 
 
 class CollisionSamples(_SceneDataset):

@@ -46,6 +46,7 @@ from lagfluid.data.datasets import AdvectionSamples, CollisionSamples, PressureS
 from lagfluid.errors import ConfigError, LagfluidError
 from lagfluid.models.fgn.inputs import advection_inputs, collision_inputs, pressure_inputs
 from lagfluid.models.fgn.networks import build_network, owned_stages
+from lagfluid.models.fgn.ppe_term import WithPPESystem, ppe_residual_rows
 from lagfluid.neighbors import edge_vectors, radius_graph
 from lagfluid.physics import operators as ops
 from lagfluid.physics.stages import SolverSettings, lattice_constants
@@ -345,10 +346,37 @@ class CollisionStage(FGNStage):
 
 
 class PressureStage(FGNStage):
-    """The pressure net: ``[v**, n / n0, type]`` on the PPE unknowns' kernel graph -> ``p`` (every node)."""
+    """The pressure net: ``[v**, n / n0, type]`` on the PPE unknowns' kernel graph -> ``p`` (every node).
+
+    Args:
+        name, options: as :class:`FGNStage`.
+        ppe_weight: ``train.ppe_weight``; > 0 adds the squared relative PPE residual of the prediction
+            (paper eq. 31) at this weight (:mod:`lagfluid.models.fgn.ppe_term`): :meth:`predict` then returns
+            the residual rows after the pressure rows (target 0), and the loss averages over both.
+    """
 
     samples = PressureSamples
     graph_fluid_only = False
+
+    def __init__(self, name: str, options: dict[str, Any], ppe_weight: float = 0.0) -> None:
+        super().__init__(name, options)
+        if not (math.isfinite(ppe_weight) and ppe_weight >= 0.0):
+            raise ConfigError(f"train.ppe_weight must be a finite number >= 0, got {ppe_weight}")
+        self.ppe_weight = ppe_weight
+
+    def identity(self) -> dict[str, Any]:
+        """The PPE term's weight when there is one (runs without it keep their fingerprints)."""
+        return {"materials": None, **({"ppe_weight": self.ppe_weight} if self.ppe_weight else {})}
+
+    def datasets(self, data_dir: Path) -> tuple[Any, Any]:
+        """Cached samples, each with its step's PPE system when the PPE term is on."""
+        if not self.ppe_weight:
+            return super().datasets(data_dir)
+        graph = (float(self.options["radius"]), False)
+        return tuple(
+            CachedDataset(WithPPESystem(self.samples(data_dir, split=split)), graph)
+            for split in ("train", "valid")
+        )
 
     def fit_statistics(self, net: nn.Module, items: Sequence[Data]) -> dict[str, Any]:
         """Speed, density ratio and pressure."""
@@ -370,7 +398,12 @@ class PressureStage(FGNStage):
         inputs = pressure_inputs(
             batch.vel, batch.density, batch.n0, fluid, edge_index, dist, radius, _dtype(net), batch.batch
         )
-        return net(*inputs), net.target(batch.y.unsqueeze(1)).squeeze(1)
+        pred, target = net(*inputs), net.target(batch.y.unsqueeze(1)).squeeze(1)
+        if not self.ppe_weight:
+            return pred, target
+        pressure = net.target.inverse(pred.unsqueeze(1)).squeeze(1)
+        rows = math.sqrt(self.ppe_weight) * ppe_residual_rows(pressure, batch)
+        return torch.cat([pred, rows]), torch.cat([target, torch.zeros_like(rows)])
 
 
 def build_trainables(cfg: Any) -> dict[str, FGNStage]:
@@ -378,7 +411,7 @@ def build_trainables(cfg: Any) -> dict[str, FGNStage]:
 
     Reads ``cfg.model.<name>`` (network options), ``cfg.model.trains`` (the stages the model owns; FGN all
     three, the Table 5 ablations advection and pressure), ``cfg.train.materials``, ``cfg.solver`` and
-    ``cfg.seed``.
+    ``cfg.seed``; ``cfg.train.ppe_weight`` (the pressure net's PPE term, 0 = none).
     """
     fmt = cfg.model.get("format", "lagfluid")
     if fmt != "lagfluid":
@@ -394,6 +427,8 @@ def build_trainables(cfg: Any) -> dict[str, FGNStage]:
             "advection", plain(cfg.model.advection), materials, settings, int(cfg.seed)
         ),
         "collision": CollisionStage("collision", plain(cfg.model.collision)),
-        "pressure": PressureStage("pressure", plain(cfg.model.pressure)),
+        "pressure": PressureStage(
+            "pressure", plain(cfg.model.pressure), float(cfg.train.get("ppe_weight") or 0.0)
+        ),
     }
     return {k: stages[k] for k in owned_stages(cfg.model)}

@@ -1,0 +1,119 @@
+"""The PPE residual (paper eq. 31) as an auxiliary training term of FGN's pressure net.
+
+With ``train.ppe_weight.pressure = w > 0`` each pressure sample also carries the MPS pressure Poisson system
+of its step, ``A p = b``, rebuilt by the solver's own assembly (:func:`lagfluid.physics.mps.pressure_system`)
+from the full scene at ``(x**, v**)`` with the generating run's settings and constants (the scene file's
+``config``, ``n0``, ``n0_lap``, ``lambda``). The loss then also asks the predicted pressure to satisfy it:
+per sample ``w ||A p - b||^2 / ||b||^2``, the squared relative residual, next to the data term. The label
+solves the same system to the solver's tolerance; :class:`WithPPESystem` refuses a sample whose label does
+not (data made with other settings than the file says).
+
+Why a physics term: the one-step data loss weighs every pressure error alike, while the scheme only feels
+``grad p`` and the PPE is the relation between ``p`` and the velocity field the correction has to fix.
+Measured in ``benchmarks/results/fgn_recipe.md``.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+from omegaconf import OmegaConf
+from torch import Tensor
+from torch_geometric.data import Batch, Data
+from torch_geometric.utils import scatter
+
+from lagfluid.errors import LagfluidError
+from lagfluid.physics.mps import pressure_system
+from lagfluid.physics.reference import exact_context
+from lagfluid.physics.stages import MPSConstants, SolverSettings
+
+__all__ = ["LABEL_TOLERANCE", "WithPPESystem", "ppe_residual_rows"]
+
+LABEL_TOLERANCE = 1e-2
+"""Largest relative PPE residual of a stored label (float32 storage and the solver's own tolerance)."""
+
+
+class WithPPESystem:
+    """Pressure samples, each with its step's PPE on its nodes (``ppe_index``, ``ppe_value``, ``ppe_b``).
+
+    ``ppe_index`` (2, E) int32 are (row, column) node indices of the item (PyG offsets them per sample in a
+    batch, as any ``*index`` attribute), ``ppe_value`` (E,) the matrix entries ``A = -(1/rho) L``, ``ppe_b``
+    (M,) the source of every node and ``ppe_label_residual`` (1,) the stored label's relative residual.
+    The boundary is pruned beyond the reach of the unknowns' rows before the assembly (exact: the rebuilt
+    unknowns are checked against the stored ones).
+
+    Args:
+        samples: :class:`~lagfluid.data.datasets.PressureSamples` (their :meth:`scene_state`).
+
+    Raises:
+        LagfluidError: a sample's PPE unknowns differ from its stored nodes, or its label does not solve the
+            rebuilt system (residual above :data:`LABEL_TOLERANCE`): the file's settings are not the ones
+            that made it.
+    """
+
+    def __init__(self, samples: Any) -> None:
+        self.samples = samples
+        self._settings: dict[str, SolverSettings] = {}
+
+    def _solver_settings(self, config: str) -> SolverSettings:
+        """The generating run's solver settings (parsed once per distinct config)."""
+        settings = self._settings.get(config)
+        if settings is None:
+            settings = SolverSettings.from_config(OmegaConf.create(config).solver)
+            self._settings[config] = settings
+        return settings
+
+    def __len__(self) -> int:
+        return len(self.samples)
+
+    def __getitem__(self, idx: int) -> Data:
+        item = self.samples[idx]
+        attrs = self.samples.scene_attributes(idx)
+        settings = self._solver_settings(str(attrs["config"]))
+        # Boundary beyond the reach of the unknowns' rows (their Laplacian neighbours and those neighbours'
+        # number density) changes nothing; pruning it makes the assembly ~10x cheaper on data=cpu's tanks.
+        reach = 2 * (settings.re_laplacian + settings.re_density) + 1.0
+        state, rows = self.samples.scene_state(idx, boundary_radius=reach * float(item.l0[0]))
+        constants = MPSConstants(float(attrs["n0"]), float(attrs["n0_lap"]), float(attrs["lambda"]))
+        built = pressure_system(exact_context(state, settings, constants), state.pos, state.vel)
+        system = built.system
+        if not torch.equal(rows[system.index.cpu()], item.particle_id):
+            raise LagfluidError(
+                f"pressure sample {idx}: the rebuilt PPE has {system.num_unknowns} unknowns, the sample "
+                f"{item.particle_id.numel()} nodes; was it generated with other solver settings?"
+            )
+        crow, col = system.matrix.crow_indices(), system.matrix.col_indices().long()
+        row = torch.repeat_interleave(torch.arange(system.num_unknowns), torch.diff(crow))
+        value, b = system.matrix.values(), system.gather(built.source)
+        label = item.y.double()
+        residual = torch.zeros_like(b).index_add_(0, row, value * label[col]) - b
+        rel = float(residual.norm() / b.norm().clamp_min(1e-30))
+        if rel > LABEL_TOLERANCE:
+            raise LagfluidError(
+                f"pressure sample {idx}: its label leaves a relative PPE residual of {rel:.3g} in the "
+                f"rebuilt system (> {LABEL_TOLERANCE}): the scene file's settings did not make it"
+            )
+        item.ppe_index = torch.stack([row, col]).int()  # int32: ~600k entries per data=cpu sample, cached
+        item.ppe_value = value.float()
+        item.ppe_b = b.float()
+        item.ppe_label_residual = torch.tensor([rel])
+        return item
+
+
+def ppe_residual_rows(pressure: Tensor, batch: Batch) -> Tensor:
+    """Rows whose mean square over a sample is its squared relative PPE residual ``||A p - b||^2 / ||b||^2``.
+
+    Args:
+        pressure: (M,) predicted pressure (Pa) of the batch's nodes.
+        batch: a batch of :class:`WithPPESystem` items (``ppe_index``, ``ppe_value``, ``ppe_b``, ``batch``).
+
+    Returns:
+        (M,) ``r_i sqrt(M_g) / ||b||_g`` with ``r = A p - b`` and ``g`` the node's sample.
+    """
+    row, col = batch.ppe_index.long()
+    r = torch.zeros_like(pressure).index_add(0, row, batch.ppe_value * pressure[col]) - batch.ppe_b
+    graph = batch.batch
+    b_sq = scatter(batch.ppe_b.square(), graph, dim=0, dim_size=batch.num_graphs, reduce="sum")
+    count = scatter(torch.ones_like(pressure), graph, dim=0, dim_size=batch.num_graphs, reduce="sum")
+    return r * (count / b_sq.clamp_min(1e-30)).sqrt()[graph]
