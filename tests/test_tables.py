@@ -218,7 +218,7 @@ def test_a_key_with_only_a_table2_row_is_timed_and_in_no_other_table(runtime_plu
     bench.evaluate = lambda run, **_: asked.append(run.key) or run
     bench.time_steps = lambda run: asked.append(run.key) or run
     bench.own_dt = lambda sim: None
-    bench.table3_runs("dam"), bench.table3_runs("waterfall"), bench.table2_runs()
+    bench.accuracy_runs("dam"), bench.accuracy_runs("waterfall"), bench.table2_runs()
     assert asked == ["table3/dam/mps", "table3/waterfall/mps", "table2/mps", "table2/toy_timed"]
 
 

@@ -248,8 +248,8 @@ class Bench:
         return run
 
     # -------------------------------------------------------------- the rows of each part
-    def table3_runs(self, case: str, table: str = "table3", keys: Sequence[str] | None = None) -> list[Run]:
-        """Tables 1/3 rows of ``case`` (``dam`` or ``waterfall``): every simulator against MPS.
+    def accuracy_runs(self, case: str, table: str = "table3", keys: Sequence[str] | None = None) -> list[Run]:
+        """Accuracy rows of ``case`` (``dam`` or ``waterfall``): every simulator against MPS (Tables 1/3).
 
         A key without a ``<table>_<case>`` row file but with other row files (a Table 2 timing row) is left
         out (:meth:`~benchmarks.tables.simulators.Simulator.appears_in`). ``table="table5"``: the rows of
@@ -365,7 +365,7 @@ class Bench:
         """The FGN dam row of Table 3 (also Fig. 5's point at the scene's dt and a trade-off point)."""
         key = f"table3/dam/{FGN}"
         if key not in self.done:
-            self.table3_runs("dam")
+            self.accuracy_runs("dam")
         return self.done[key]
 
     def tradeoff_runs(self) -> list[Run]:

@@ -63,7 +63,7 @@ def run_all(profile: Profile, args: argparse.Namespace) -> dict[str, Any]:
 
     if "table2" in parts:  # first: the timing rows run before anything else has warmed or loaded the machine
         part_table2(bench, report)
-    dam_runs = bench.table3_runs("dam") if parts - {"table2"} else []
+    dam_runs = bench.accuracy_runs("dam") if parts - {"table2"} else []
     if "table3" in parts:
         part_table3(bench, report, dam_runs)
     fig5 = bench.fig5_runs() if parts & {"fig5", "tradeoff"} else ([], None, None)

@@ -199,8 +199,8 @@ def part_table5(bench: Bench, report: Report, dam_runs: list[Run]) -> None:
     for case in ("dam", "waterfall") if p.waterfall else ("dam",):
         own = [r for r in dam_runs if r.sim.key in (GROUND_TRUTH, FGN)]
         if case != "dam":  # Table 3's rows when it ran them (memoised), else these two alone
-            own = bench.table3_runs(case, keys=(GROUND_TRUTH, FGN))
-        ablations += bench.table3_runs(case, table="table5")
+            own = bench.accuracy_runs(case, keys=(GROUND_TRUTH, FGN))
+        ablations += bench.accuracy_runs(case, table="table5")
         rows += table3_rows(case, own + [r for r in ablations if r.key.startswith(f"table5/{case}/")])
     notes = row_notes(ablations)
     report.csv("table5", rows)
@@ -226,7 +226,7 @@ def part_table3(bench: Bench, report: Report, dam_runs: list[Run]) -> None:
     """Tables 1 and 3: accuracy of every simulator against MPS on the dam and the water fall."""
     p = bench.profile
     rows = table3_rows("dam", dam_runs)
-    waterfall_runs = bench.table3_runs("waterfall") if p.waterfall else []
+    waterfall_runs = bench.accuracy_runs("waterfall") if p.waterfall else []
     rows += table3_rows("waterfall", waterfall_runs)
     report.csv("table3", rows)
     notes = row_notes(dam_runs + waterfall_runs)
