@@ -92,3 +92,19 @@ def test_training_with_the_ppe_term_records_its_weight_and_refuses_a_bad_one(tin
     assert '"ppe_weight": 0.1' in meta["identity"]
     with pytest.raises(ConfigError, match=r"train.ppe_weight must be a finite number >= 0, got -1.0"):
         PressureStage("pressure", {}, ppe_weight=-1.0)
+
+
+def test_a_sample_differing_only_at_the_surface_threshold_gets_no_ppe_term(tiny_data, monkeypatch):
+    samples = PressureSamples(tiny_data, split="train")
+    real = samples.get
+
+    def one_node_less(idx):
+        item = real(idx)
+        item.particle_id = item.particle_id[:-1]  # as if one particle sat at n = beta n0 to rounding
+        return item
+
+    monkeypatch.setattr(samples, "get", one_node_less)
+    item = WithPPESystem(samples)[0]
+    assert item.ppe_index.shape == (2, 0) and not item.ppe_b.any()
+    rows = ppe_residual_rows(torch.randn(item.num_nodes), Batch.from_data_list([item]))
+    assert not rows.any()

@@ -315,16 +315,19 @@ class PressureSamples(_SceneDataset):
             **self._scene_fields(file),
         )
 
-    def scene_state(self, idx: int, boundary_radius: float | None = None) -> tuple[ParticleState, Tensor]:
+    def scene_state(
+        self, idx: int, boundary_radius: float | None = None, dtype: torch.dtype = torch.float64
+    ) -> tuple[ParticleState, Tensor]:
         """The particles of item ``idx``'s scene at the pressure stage's input.
 
         Args:
             idx: the item.
             boundary_radius: keep only the boundary particles within this distance (m) of the fluid; None:
                 the whole boundary.
+            dtype: of the state's positions and velocities (the generating run's, to rebuild its PPE).
 
         Returns:
-            The state (fluid ``x**``, ``v**``, then the kept boundary, dummies included, at rest; float64)
+            The state (fluid ``x**``, ``v**``, then the kept boundary, dummies included, at rest)
             and each row's ``particle_id`` (N,): with :meth:`scene_attributes`, what rebuilds the step's PPE
             (:class:`lagfluid.models.fgn.ppe_term.WithPPESystem`).
         """
@@ -349,11 +352,11 @@ class PressureSamples(_SceneDataset):
         )
         bounds = self._bounds(file).get("bounds")
         state = ParticleState(
-            pos=arrays["pos"].double(),
-            vel=arrays["vel"].double(),
+            pos=arrays["pos"].to(dtype),
+            vel=arrays["vel"].to(dtype),
             ptype=arrays["ptype"],
             params=params,
-            bounds=None if bounds is None else bounds[0].double(),
+            bounds=None if bounds is None else bounds[0].to(dtype),
             check=False,
         )
         return state, torch.from_numpy(rows)
