@@ -316,17 +316,11 @@ def test_tiny_profile_writes_every_output(tiny_run):
         rows = list(csv.DictReader(f))
     assert [r["simulator"] for r in rows] == ["Ground truth (MPS)", "FGN", "hybrid: learned pressure"]
     assert all(r["machine"] and r["git_commit"] and r["overrides"] for r in rows)  # provenance per number
-    assert not (results / "tables_tiny_table5.csv").exists()  # not a default part until weights ship
 
 
 def test_table5_sets_the_ablations_beside_table3s_own_fgn_and_mps_rows(tiny_run):
-    import lagfluid.models.fgn.simulator as fgn_simulator
-
-    root, _, args, shipped = tiny_run
+    root, written, *_ = tiny_run
     results = root / "results"
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(fgn_simulator, "WEIGHTS_ROOT", shipped)
-        written = run_all(TINY, argparse.Namespace(**{**vars(args), "only": ["table5"], "readme": False}))
     assert written["failed"] == []
     with (results / "tables_tiny_table5.csv").open() as f:
         table5 = list(csv.DictReader(f))
@@ -339,7 +333,7 @@ def test_table5_sets_the_ablations_beside_table3s_own_fgn_and_mps_rows(tiny_run)
     assert all(a == b for a, b in same), same
     assert not any("GCN" in r["simulator"] for r in table3)
     report = (results / "tables_tiny_report.md").read_text()
-    assert "## Table 5" in report and "## Tables 1 and 3" in report  # the earlier parts are kept
+    assert "## Table 5" in report and "## Tables 1 and 3" in report
 
 
 def test_table4_pressure_rows_are_the_rows_with_a_learned_pressure_stage(tiny_run):

@@ -41,7 +41,7 @@ Parts (``--only``):
   (eq. 31), mean +- standard deviation.
 * ``table5``: the paper's aggregator ablation: FGN's node-focused nets with GCN, SAGE (mean) or no
   aggregation (``model=fgn_gcn``, ``fgn_sage``, ``fgn_mlp``, rows ``table5_<case>_<key>``) beside Table 3's
-  FGN and MPS rows, same metrics. Not in a default run until the ablations' weights ship: ``--only table5``.
+  FGN and MPS rows, same metrics (the ablations' shipped weights: ``lagfluid/weights/fgn_*``).
 * ``fig5``: FGN's Chamfer distance to MPS against time for dt from 0.5 ms up, until the rollout guard stops
   a run (the largest dt that completes is reported).
 * ``tradeoff``: wall seconds per simulated second against accuracy (Chamfer distance to the reference MPS,

@@ -208,8 +208,8 @@ def part_table5(bench: Bench, report: Report, dam_runs: list[Run]) -> None:
         "## Table 5: the aggregator of FGN's node-focused networks\n\n"
         "FGN's advection and pressure nets with their two kernel-weighted aggregation layers replaced by "
         "PyG's `GCNConv` (neighbours weighted by degree), `SAGEConv` (mean) or no aggregation (MLP); "
-        "everything else FGN's, trained by the same recipe on the same data (`model=fgn_gcn`, `fgn_sage`, "
-        "`fgn_mlp`). Metrics and reference as Tables 1/3.\n\n"
+        "everything else FGN's, trained by FGN's recipe (`model=fgn_gcn`, `fgn_sage`, `fgn_mlp`; the data of "
+        "each set of weights: its `MODEL_CARD.md`). Metrics and reference as Tables 1/3.\n\n"
         + accuracy_md(rows, cases)
         + "\n\n"
         + (f"{notes}\n" if notes else "")
