@@ -9,6 +9,7 @@ names instead of Hydra's multi-line report.
 from __future__ import annotations
 
 import logging
+import os
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -110,8 +111,25 @@ def _hydra_main(cfg: DictConfig) -> None:
         sys.exit(1)
 
 
+def limit_openmp(argv: Sequence[str]) -> None:
+    """With ``threads=N`` on the command line, tell OpenMP before torch loads it (unless already set).
+
+    ``OMP_NUM_THREADS=N``, and for ``N = 1`` ``OMP_WAIT_POLICY=PASSIVE``: ``torch.set_num_threads`` does not
+    reach every OpenMP team (fbgemm's parallel sort behind PyG's sparse ops still ran a second thread that
+    spin-waited at its barrier), and two ``threads=1`` trainings on a 2-core machine ran 3-8x slower per
+    iteration than with these set (``docs/training.md``).
+    """
+    for arg in argv:
+        key, sep, value = arg.partition("=")
+        if key.lstrip("+") == "threads" and sep and value.isdigit() and int(value) >= 1:
+            os.environ.setdefault("OMP_NUM_THREADS", value)
+            if int(value) == 1:
+                os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+
 def main() -> None:
     """Entry point of ``python -m lagfluid.run``."""
+    limit_openmp(sys.argv[1:])  # first: before anything imports torch
     try:
         problem = check_command_line(sys.argv[1:])
         _register_plugin_configs()

@@ -1,4 +1,5 @@
 import json
+import os
 import subprocess
 import sys
 
@@ -247,3 +248,20 @@ def test_plugins_register_through_the_entry_point_group(monkeypatch):
 
     assert registry.get_simulator_factory("plugin_sim") is build_mps
     assert check_command_line(["model=plugin_sim"]) is None  # selectable on the command line
+
+
+def test_threads_on_the_command_line_reach_openmp_before_torch_loads(monkeypatch):
+    from lagfluid.run import limit_openmp
+
+    for name in ("OMP_NUM_THREADS", "OMP_WAIT_POLICY"):
+        monkeypatch.delenv(name, raising=False)
+    limit_openmp(["model=fgn", "threads=2"])
+    assert os.environ["OMP_NUM_THREADS"] == "2" and "OMP_WAIT_POLICY" not in os.environ
+    monkeypatch.delenv("OMP_NUM_THREADS")
+    limit_openmp(["threads=1,2"])  # a sweep: each job's own
+    assert "OMP_NUM_THREADS" not in os.environ
+    limit_openmp(["threads=1"])
+    assert os.environ["OMP_NUM_THREADS"] == "1" and os.environ["OMP_WAIT_POLICY"] == "PASSIVE"
+    monkeypatch.setenv("OMP_NUM_THREADS", "4")  # the user's own setting wins
+    limit_openmp(["threads=1"])
+    assert os.environ["OMP_NUM_THREADS"] == "4"
