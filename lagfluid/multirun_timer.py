@@ -1,10 +1,10 @@
 """A Hydra callback that records a multirun's total wall time: ``<sweep dir>/multirun_time.json``.
 
 Registered in ``conf/config.yaml`` (``hydra.callbacks``), so every ``python -m lagfluid.run -m ...`` writes
-it; the retrain-everything sweep (``--config-name retrain``) reports its total this way. The file holds the
-start and end (UTC, ISO 8601), ``wall_s``, the command-line overrides and the sweeper's own parameters (the
-jobs' overrides are in each job's ``.hydra/overrides.yaml``). Written atomically once every job has
-returned; a sweep stopped by a failing job writes none.
+it; the retrain-everything sweep (``python -m lagfluid.retrain``) reports its total this way. The file
+holds the start and end (UTC, ISO 8601), ``wall_s``, the command-line overrides and the sweeper's own
+parameters (the jobs' overrides are in each job's ``.hydra/overrides.yaml``). Written atomically once
+every job has returned; a sweep stopped by a failing job writes none.
 """
 
 from __future__ import annotations

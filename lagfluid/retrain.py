@@ -18,7 +18,8 @@ silently drop out.
 
 from __future__ import annotations
 
-import runpy
+import shlex
+import subprocess
 import sys
 from collections.abc import Sequence
 
@@ -27,7 +28,7 @@ PREFIX = "retrain_"
 
 def retrain_experiments() -> list[str]:
     """Names of every ``retrain_*`` experiment (core and plugins), sorted."""
-    from lagfluid.run import _group_names  # not at import: runpy runs lagfluid.run afresh as __main__
+    from lagfluid.run import _group_names
 
     return [name for name in _group_names("experiment") if name.startswith(PREFIX)]
 
@@ -40,12 +41,11 @@ def retrain_arguments(overrides: Sequence[str]) -> list[str]:
 
 
 def main() -> None:
-    """Entry point of ``python -m lagfluid.retrain``: runs the sweep as ``python -m lagfluid.run`` would."""
+    """Entry point of ``python -m lagfluid.retrain``: runs the sweep as ``python -m lagfluid.run -m ...``."""
     args = retrain_arguments(sys.argv[1:])
-    sys.stderr.write(f"python -m lagfluid.run {' '.join(args)}\n")
-    sys.argv = [sys.argv[0], *args]
-    # as __main__, like `python -m lagfluid.run`: Hydra finds conf/ from the running file
-    runpy.run_module("lagfluid.run", run_name="__main__", alter_sys=True)
+    sys.stderr.write(f"python -m lagfluid.run {shlex.join(args)}\n")
+    # a child process: it starts without torch loaded, so threads=N reaches OpenMP (lagfluid.run.limit_openmp)
+    sys.exit(subprocess.run([sys.executable, "-m", "lagfluid.run", *args], check=False).returncode)
 
 
 if __name__ == "__main__":

@@ -342,7 +342,13 @@ def train(cfg: DictConfig) -> list[dict[str, Any]]:
     summaries = [train_one(cfg, trainables[name], out_dir) for name in names]
     export_to = cfg.get("export_to")
     if export_to:
-        Path(str(export_to)).mkdir(parents=True, exist_ok=True)
+        dest = Path(str(export_to))
+        if not dest.parent.is_dir():  # a relative path run from elsewhere: not a stray lagfluid/weights here
+            raise ConfigError(
+                f"export_to={export_to}: its parent folder {dest.parent.resolve()} does not exist; run from "
+                "the repository root or give an absolute path"
+            )
+        dest.mkdir(exist_ok=True)
         for name in names:  # only this run's trainables: out_dir may hold other checkpoints
             written = export_weights(out_dir, export_to, kinds=[name])
             log.info("%s: exported to %s", name, written[0])

@@ -108,3 +108,8 @@ def test_a_sample_differing_only_at_the_surface_threshold_gets_no_ppe_term(tiny_
     assert item.ppe_index.shape == (2, 0) and not item.ppe_b.any()
     rows = ppe_residual_rows(torch.randn(item.num_nodes), Batch.from_data_list([item]))
     assert not rows.any()
+
+
+def test_without_the_ppe_term_a_pressure_run_keeps_its_earlier_fingerprint():
+    assert PressureStage("pressure", {}).identity() == {"materials": None}  # resumable across the change
+    assert PressureStage("pressure", {}, ppe_weight=0.5).identity() == {"materials": None, "ppe_weight": 0.5}

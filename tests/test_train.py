@@ -178,3 +178,22 @@ def test_export_to_copies_the_trained_networks_without_optimizer_state(tiny_data
     assert "optimizer" in run and "optimizer" not in shipped and "rng" not in shipped
     torch.testing.assert_close(shipped["state_dict"], run["state_dict"])
     assert shipped["step"] == 3 and shipped["meta"]["stats"] == run["meta"]["stats"]
+
+
+def test_export_to_under_a_missing_folder_is_refused_naming_it(tiny_data, tmp_path, monkeypatch):
+    monkeypatch.setitem(registry._REGISTERED_TRAINABLES, "fgn", lambda cfg: {"line": LinearFit("line")})
+    bad = tmp_path / "no" / "such" / "weights"
+    cfg = _compose(
+        "task=train",
+        "model=fgn",
+        "data=tiny",
+        f"data.out_dir={tiny_data}",
+        f"out_dir={tmp_path / 'run'}",
+        f"export_to={bad}",
+        "progress=false",
+        "+train.iterations.line=1",
+        "+train.batch_size.line=2",
+    )
+    with pytest.raises(ConfigError, match=r"export_to=.*its parent folder .* does not exist"):
+        train(cfg)
+    assert not bad.parent.exists()

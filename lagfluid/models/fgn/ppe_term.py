@@ -1,10 +1,13 @@
 """The PPE residual (paper eq. 31) as an auxiliary training term of FGN's pressure net.
 
-With ``train.ppe_weight.pressure = w > 0`` each pressure sample also carries the MPS pressure Poisson system
+With ``train.ppe_weight = w > 0`` each pressure sample also carries the MPS pressure Poisson system
 of its step, ``A p = b``, rebuilt by the solver's own assembly (:func:`lagfluid.physics.mps.pressure_system`)
 from the full scene at ``(x**, v**)`` with the generating run's settings and constants (the scene file's
 ``config``, ``n0``, ``n0_lap``, ``lambda``). The loss then also asks the predicted pressure to satisfy it:
-per sample ``w ||A p - b||^2 / ||b||^2``, the squared relative residual, next to the data term. The label
+:func:`ppe_residual_rows` times ``sqrt(w)`` join the pressure rows, target 0, in the pressure net's loss
+(``train.loss.pressure``). Under ``mse`` that adds ``w ||A p - b||^2 / ||b||^2`` per sample (averaged with
+the data term over both sets of rows); under ``huber`` (``train=cpu``) rows beyond ``huber_delta`` count
+linearly, as the pressure rows do. The label
 solves the same system to the solver's tolerance; :class:`WithPPESystem` refuses a sample whose label does
 not (data made with other settings than the file says).
 
@@ -37,8 +40,8 @@ LABEL_TOLERANCE = 1e-2
 """Largest relative PPE residual of a stored label (float32 storage and the solver's own tolerance)."""
 
 BORDERLINE = 5
-"""Unknowns that may differ from the stored ones (particles at the free-surface threshold to rounding, in
-at most 0.1 % of the nodes too) before a sample is refused; such a sample gets no PPE term."""
+"""Unknowns that may differ from the stored ones (particles at the free-surface threshold to rounding):
+``max(BORDERLINE, 0.1 % of the nodes)``; more, and the sample is refused. Such a sample gets no PPE term."""
 
 
 class WithPPESystem:
@@ -92,7 +95,7 @@ class WithPPESystem:
         if not torch.equal(unknowns, item.particle_id):
             differ = int(torch.isin(unknowns, item.particle_id, invert=True).sum())
             differ += int(torch.isin(item.particle_id, unknowns, invert=True).sum())
-            if differ > max(BORDERLINE, 1e-3 * item.particle_id.numel()):
+            if differ == 0 or differ > max(BORDERLINE, 1e-3 * item.particle_id.numel()):
                 raise LagfluidError(
                     f"pressure sample {idx}: the rebuilt PPE has {system.num_unknowns} unknowns, the sample "
                     f"{item.particle_id.numel()} nodes ({differ} differ); was it generated with other "
