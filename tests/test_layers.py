@@ -23,6 +23,8 @@ from pathlib import Path
 LAYERS: dict[str, tuple[str, ...]] = {
     "tasks": (
         "lagfluid.run",
+        "lagfluid.retrain",  # the retrain-everything sweep of lagfluid.run
+        "lagfluid.multirun_timer",  # a Hydra callback of every multirun
         "lagfluid.config",  # a run's setup from its config, shared by the tasks
         "lagfluid.outputs",  # a run's output files, replaced together
         "lagfluid.simulate",
