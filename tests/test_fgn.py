@@ -608,3 +608,19 @@ def test_the_learned_advection_stage_sees_what_training_sees():
         pred, _ = _trainables()["advection"].predict(net, Batch.from_data_list([item]))
     assert acc.abs().max() > 0
     torch.testing.assert_close(net.target.inverse(pred), acc, atol=1e-5, rtol=1e-5)
+
+
+@pytest.mark.parametrize("model", ["fgn", "fgn_gcn", "fgn_sage", "fgn_mlp"])
+def test_shipped_weights_come_with_a_model_card_and_build_the_model(model):
+    from lagfluid.models.fgn.networks import owned_stages
+    from lagfluid.models.fgn.simulator import WEIGHTS_ROOT
+
+    cfg = _compose(f"model={model}", "scene=dam_small", "steps=1")
+    for stage in owned_stages(cfg.model):
+        folder = WEIGHTS_ROOT / str(cfg.model.shipped[stage])
+        assert (folder / "MODEL_CARD.md").is_file(), folder
+        ckpt = read_checkpoint(folder / f"{stage}.pt", stage)
+        assert ckpt["options"].get("aggregation") == cfg.model[stage].get("aggregation")
+        assert "optimizer" not in ckpt  # exported for shipping
+    sim = build_simulator(cfg)  # the shipped weights, no model.weights
+    sim.reset(build_initial_state(cfg))
