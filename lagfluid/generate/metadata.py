@@ -118,7 +118,9 @@ def write_metadata(spec: DataSpec, generation_seconds: float | None = None) -> d
         "materials": spec.materials,
         "collision": spec.collision,
         "solver": spec.solver,
-        "model": "mps",
+        "model": "mps" if spec.policy is None else spec.policy["model"],
+        # an on-policy dataset's (lagfluid.generate.policy): what moved the particles
+        **({"policy": spec.policy} if spec.policy is not None else {}),
         "version": lagfluid.__version__,
         "git_commit": git_commit(),
         "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import time
@@ -21,6 +22,7 @@ from lagfluid.data.layout import (
 from lagfluid.data.store import TrajectoryFileError, TrajectoryWriter
 from lagfluid.errors import LagfluidError, RolloutError, SceneError
 from lagfluid.generate.collision import write_collision_samples
+from lagfluid.generate.policy import build_policy
 from lagfluid.generate.spec import DataSpec
 from lagfluid.models.mps_simulator import build_mps
 from lagfluid.physics.stages import SolverSettings
@@ -60,6 +62,9 @@ def scene_done(path: Path, fingerprint: str) -> bool:
 def generate_scene(cfg: DictConfig, spec: DataSpec, index: int) -> Path:
     """Simulate scene ``index`` with MPS and write its file (trajectory + samples); returns the path.
 
+    With ``spec.policy`` the scene is moved by ``cfg.model`` instead, each sample labelled by the exact
+    stages at the model's own states (:mod:`lagfluid.generate.policy`).
+
     Raises:
         LagfluidError: the rollout guard stopped the scene (the file is kept as ``*.failed.h5``), or the scene
             is invalid.
@@ -72,7 +77,7 @@ def generate_scene(cfg: DictConfig, spec: DataSpec, index: int) -> Path:
     except SceneError as err:
         raise SceneError(f"scene {index} (seed {seed}): {err}") from err
     settings = SolverSettings.from_config(cfg.solver)
-    sim = build_mps(cfg)
+    sim = build_policy(cfg) if spec.policy is not None else build_mps(cfg)
     sim.reset(state)
     nf = state.n_fluid
     attrs = {
@@ -85,6 +90,7 @@ def generate_scene(cfg: DictConfig, spec: DataSpec, index: int) -> Path:
         "fingerprint": spec.fingerprint(index),
         "dataset": spec.name,
         **sim.attributes(),
+        **({"policy": json.dumps(spec.policy)} if spec.policy is not None else {}),
     }
     writer = TrajectoryWriter(
         path, nf, state.pos[nf:].cpu().numpy(), state.ptype[nf:].cpu().numpy(), attrs, group=GROUP

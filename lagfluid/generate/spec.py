@@ -20,6 +20,7 @@ from lagfluid.data.layout import (
     SPLITS,
 )
 from lagfluid.errors import LagfluidError
+from lagfluid.generate.policy import policy_identity
 from lagfluid.physics.stages import solver_identity
 from lagfluid.state import SceneParams
 
@@ -65,6 +66,9 @@ class DataSpec:
         solver: the ``solver`` config as a plain dict.
         dtype: floating dtype of the simulation.
         device: torch device.
+        policy: None when the MPS solver moves the particles; else what moves them in an on-policy dataset
+            (``data.policy=model``: the model, its stages, its network files' hashes;
+            :mod:`lagfluid.generate.policy`).
     """
 
     name: str
@@ -84,6 +88,7 @@ class DataSpec:
     solver: dict[str, Any]
     dtype: torch.dtype
     device: torch.device
+    policy: dict[str, Any] | None = None
 
     @classmethod
     def from_config(cls, cfg: DictConfig) -> DataSpec:
@@ -144,6 +149,7 @@ class DataSpec:
             solver=OmegaConf.to_container(cfg.solver, resolve=True),
             dtype=dtype,
             device=torch.device(cfg.device),
+            policy=policy_identity(cfg),
         )
 
     @property
@@ -188,4 +194,6 @@ class DataSpec:
         }
         if self.next_steps:  # only then: the files of datasets without them keep their fingerprints
             content["next_steps"] = self.next_steps
+        if self.policy is not None:  # likewise: solver datasets keep theirs
+            content["policy"] = self.policy
         return hashlib.sha256(json.dumps(content, sort_keys=True, default=str).encode()).hexdigest()[:16]

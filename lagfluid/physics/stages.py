@@ -297,7 +297,7 @@ class StepContext:
         timer: per-stage timings of this step.
         info: per-step diagnostics a stage wants reported (PPE iterations, residual, ...).
         fields: the step's intermediates, kept only when the step was asked to record them (dataset
-            generation, one-step errors); stages add theirs with :meth:`record`.
+            generation, one-step errors); stages add theirs with :meth:`record` (or :meth:`record_label`).
     """
 
     state: ParticleState
@@ -310,6 +310,7 @@ class StepContext:
     # (the positions tensor asked about, its version, a copy of its values, the graph, fluid targets only)
     _full: tuple[Tensor, int, Tensor, Graph, bool] | None = None
     _within: dict[tuple[float, bool], Graph] = field(default_factory=dict)
+    _labelled: set[str] = field(default_factory=set)  # fields a stage recorded with record_label
 
     @property
     def params(self) -> SceneParams:
@@ -336,7 +337,17 @@ class StepContext:
             raise ConfigError(f"unknown step field(s) {sorted(unknown)}; declared: {sorted(_FIELD_NAMES)}")
         if self.fields is not None:
             for name, value in arrays.items():
-                setattr(self.fields, name, value.detach().clone())
+                if name not in self._labelled:
+                    setattr(self.fields, name, value.detach().clone())
+
+    def record_label(self, **arrays: Tensor) -> None:
+        """Like :meth:`record`, but later records of these fields in this step leave them as they are.
+
+        For a stage that moves the particles by one rule and labels the step by another: the step then
+        records the stage's output under the same name (on-policy datasets, :mod:`lagfluid.generate.policy`).
+        """
+        self.record(**arrays)
+        self._labelled.update(arrays)
 
     def graph(self, pos: Tensor, factor: float, fluid_targets_only: bool = False) -> Graph:
         """All pairs within ``factor * l0`` at positions ``pos`` (N, 3), sorted by target.
