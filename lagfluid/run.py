@@ -39,16 +39,21 @@ def available_models() -> list[str]:
     return sorted(set(_group_names("model")) | set(available_simulators()))
 
 
+CONFIG_GROUPS = ("scene", "data", "solver", "train", "experiment")  # besides model: conf/<group>/*.yaml
+
+
 def check_command_line(argv: Sequence[str]) -> str | None:
-    """Return a one-line error for an unknown ``model=``/``scene=``/``data=``/``task=`` value, else None.
+    """Return a one-line error for an unknown ``task=`` or config group value, else None.
+
+    The groups: ``model=`` (configs and registered plugins), ``scene=``, ``data=``, ``solver=``, ``train=``,
+    ``experiment=`` (core and plugin config folders).
 
     ``stage=`` is checked by ``task=train`` against the model's trainables (from the registry).
     """
     known = {
         "model": available_models,
-        "scene": lambda: _group_names("scene"),
-        "data": lambda: _group_names("data"),
         "task": lambda: list(TASKS),
+        **{group: (lambda group=group: _group_names(group)) for group in CONFIG_GROUPS},
     }
     for arg in argv:
         key, sep, value = arg.partition("=")

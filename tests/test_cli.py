@@ -18,7 +18,16 @@ def _compose(*overrides):
 
 
 @pytest.mark.parametrize(
-    ("arg", "kind"), [("model=nope", "model"), ("scene=atlantis", "scene"), ("task=dance", "task")]
+    ("arg", "kind"),
+    [
+        ("model=nope", "model"),
+        ("scene=atlantis", "scene"),
+        ("task=dance", "task"),
+        ("solver=nope", "solver"),
+        ("train=gpu", "train"),
+        ("+experiment=table9", "experiment"),
+        ("experiment=table9", "experiment"),
+    ],
 )
 def test_unknown_names_give_one_line_listing_the_choices(arg, kind):
     msg = check_command_line([arg])
@@ -29,6 +38,7 @@ def test_unknown_names_give_one_line_listing_the_choices(arg, kind):
 
 def test_known_names_pass_and_sweeps_are_left_to_hydra():
     assert check_command_line(["model=mps", "scene=dam", "steps=3"]) is None
+    assert check_command_line(["solver=mps_corrected", "train=cpu", "experiment=debug", "data=tiny"]) is None
     assert check_command_line(["scene=dam,nope"]) is None
 
 
@@ -39,6 +49,12 @@ def test_cli_unknown_model_exits_nonzero_with_one_line():
     assert out.returncode == 2
     lines = out.stderr.strip().splitlines()
     assert len(lines) == 1 and "unknown model 'nope'" in lines[0] and "mps" in lines[0]
+    out = subprocess.run(
+        [sys.executable, "-m", "lagfluid.run", "solver=nope"], capture_output=True, text=True, timeout=120
+    )
+    solvers = ", ".join(sorted(p.stem for p in (CONF_DIR / "solver").glob("*.yaml")))
+    assert out.returncode == 2
+    assert out.stderr.strip().splitlines() == [f"lagfluid: unknown solver 'nope'; available: {solvers}"]
 
 
 def test_registry_unknown_name_lists_available():

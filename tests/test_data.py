@@ -392,7 +392,9 @@ def test_bad_inputs_are_clear_errors(dataset, tmp_path):
         _generate(tmp_path / "x", "data.scene_index=3")
     with pytest.raises(LagfluidError, match="leave no training scene"):
         _generate(tmp_path / "x", "num_scenes=2", "data.splits.valid=0.5", "data.splits.test=0.5")
-    assert check_command_line(["data=huge"]) == "lagfluid: unknown data 'huge'; available: cpu, cpu_onpolicy, paper, tiny"
+    assert check_command_line(["data=huge"]) == (
+        "lagfluid: unknown data 'huge'; available: cpu, cpu_onpolicy, paper, tiny"
+    )
 
 
 def test_top_level_steps_and_num_scenes_follow_the_task():
