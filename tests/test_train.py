@@ -133,7 +133,7 @@ def test_init_from_fine_tunes_trained_weights_with_their_statistics(tiny_data, t
             "+train.iterations.line=1",
             "train.lr_start=1e-12",
             "train.lr_end=1e-12",
-            f"+train.init_from={first}",
+            f"train.init_from={first}",
         )
     )
     tuned = read_checkpoint(second / "line.pt")
@@ -153,7 +153,7 @@ def test_init_from_fine_tunes_trained_weights_with_their_statistics(tiny_data, t
                 *common,
                 f"out_dir={tmp_path / 'third'}",
                 "+train.iterations.line=1",
-                f"+train.init_from={first}",
+                f"train.init_from={first}",
             )
         )
 
