@@ -9,15 +9,34 @@ files in ``previous/``.
 
 from __future__ import annotations
 
+import json
 import logging
+import math
 import os
 import shutil
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 from lagfluid.data.store import TrajectoryFileError, open_lagfluid_file
 
 log = logging.getLogger(__name__)
+
+
+def finite_or_none(value: Any) -> Any:
+    """``value`` with every NaN/inf float (in nested dicts, lists, tuples) as None: JSON has no NaN."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: finite_or_none(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [finite_or_none(v) for v in value]
+    return value
+
+
+def write_json(path: Path, value: Any) -> None:
+    """Write ``value`` as strict JSON (undefined numbers as null, which every parser reads)."""
+    path.write_text(json.dumps(finite_or_none(value), indent=2, allow_nan=False))
 
 
 def part_path(path: Path) -> Path:

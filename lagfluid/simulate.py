@@ -14,7 +14,6 @@ when the run ends (:mod:`lagfluid.outputs`). A run the guard stopped is a result
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 import time
@@ -38,7 +37,7 @@ from lagfluid.config import (
 from lagfluid.data.store import TrajectoryWriter
 from lagfluid.errors import RolloutError
 from lagfluid.metrics import field_metrics, summarize
-from lagfluid.outputs import begin, part_path, publish
+from lagfluid.outputs import begin, part_path, publish, write_json
 from lagfluid.physics.stages import SolverSettings, lattice_constants
 from lagfluid.rollout import rollout
 from lagfluid.state import ParticleState, ParticleType
@@ -216,7 +215,7 @@ def simulate(cfg: DictConfig) -> dict[str, Any]:
                 "version": lagfluid.__version__,
                 "git_commit": attrs["git_commit"],
             }
-            part_path(out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2))
+            write_json(part_path(out_dir / "metrics.json"), metrics)
             _write_preview(out_dir, frames, state, f"{simulator.name} on {cfg.scene.name}")
         finally:  # whatever failed above, the folder holds one run's files
             publish(out_dir, OUTPUTS, complete)

@@ -181,3 +181,20 @@ def test_the_job_folder_rule(tmp_path, task, overrides, folder):
         assert multirun_out_dir(cfg) == (tmp_path / folder if folder else tmp_path)
     finally:
         HydraConfig.instance().cfg = None
+
+
+def test_metrics_of_a_run_stopped_before_its_first_step_are_strict_json(tmp_path):
+    # the guard refuses step 1: no step time exists; NaN would make metrics.json unreadable to strict parsers
+    out = tmp_path / "stopped"
+    cfg = _compose(
+        "model=mps", "scene=dam_small", "steps=3", "solver.guard.max_courant=1e-12", f"out_dir={out}"
+    )
+    with pytest.raises(LagfluidError, match="Courant number"):  # the CLI's one line, exit 1
+        simulate(cfg)
+
+    def refuse(name):
+        raise AssertionError(f"metrics.json holds {name}")
+
+    metrics = json.loads((out / "metrics.json").read_text(), parse_constant=refuse)
+    assert metrics["complete"] is False and metrics["steps"] == 0
+    assert metrics["time_per_step_median_s"] is None

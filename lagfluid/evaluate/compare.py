@@ -155,17 +155,6 @@ def compare(model_path: Path, reference_path: Path, settings: SolverSettings) ->
         ref.file.close()
 
 
-def finite_or_none(value: Any) -> Any:
-    """JSON has no NaN/inf: undefined values are written as null."""
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    if isinstance(value, dict):
-        return {k: finite_or_none(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [finite_or_none(v) for v in value]
-    return value
-
-
 def summaries(frames: dict[str, Any], horizons: tuple[int, ...]) -> dict[str, Any]:
     """Mean and max of every per-frame metric over the run, and the position MSE at ``horizons``."""
     out: dict[str, Any] = {}

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 import time
@@ -24,13 +23,13 @@ from lagfluid.config import (
     scene_params,
 )
 from lagfluid.errors import ConfigError
-from lagfluid.evaluate.compare import compare, finite_or_none, summaries
+from lagfluid.evaluate.compare import compare, summaries
 from lagfluid.evaluate.figures import plot_errors, plot_pressure_slice
 from lagfluid.evaluate.model_run import run_model
 from lagfluid.evaluate.options import EvaluateOptions
 from lagfluid.evaluate.reference import key_hash, reference_rollout
 from lagfluid.models.simulator import Simulator
-from lagfluid.outputs import begin, part_path, publish
+from lagfluid.outputs import begin, part_path, publish, write_json
 from lagfluid.physics.stages import SolverSettings
 from lagfluid.state import ParticleState
 
@@ -112,7 +111,7 @@ def evaluate(cfg: DictConfig) -> dict[str, Any]:
     try:
         metrics = _compare_and_write(cfg, options, simulator, state, run, model_path, reference)
         metrics["wall_time_total_s"] = time.perf_counter() - start
-        part_path(out_dir / "metrics.json").write_text(json.dumps(finite_or_none(metrics), indent=2))
+        write_json(part_path(out_dir / "metrics.json"), metrics)
     finally:  # whatever failed above, the folder holds one run's files
         publish(out_dir, OUTPUTS, run["complete"])
     summary = metrics["summary"]
