@@ -65,6 +65,20 @@ def scene_params(cfg: DictConfig) -> SceneParams:
     return SceneParams(**raw).with_overrides(dt=cfg.dt)
 
 
+def apply_threads(cfg: DictConfig) -> None:
+    """Give torch ``cfg.threads`` intra-op threads; ``null`` keeps torch's default (every core).
+
+    Raises:
+        ConfigError: ``threads`` that is not a whole number >= 1 (``0`` or ``-1`` would silently mean all).
+    """
+    threads = cfg.get("threads")
+    if threads is None:
+        return
+    if isinstance(threads, bool) or not isinstance(threads, int) or threads < 1:
+        raise ConfigError(f"threads must be a whole number >= 1 (or null: every core), got {threads!r}")
+    torch.set_num_threads(threads)
+
+
 def run_dtype(cfg: DictConfig) -> torch.dtype:
     """The floating dtype of ``cfg.dtype`` (:func:`lagfluid.state.parse_dtype`)."""
     return parse_dtype(cfg.dtype)

@@ -27,6 +27,7 @@ from omegaconf import DictConfig
 
 import lagfluid
 from lagfluid.config import (
+    apply_threads,
     at_simulator_time_step,
     build_initial_state,
     build_simulator,
@@ -126,8 +127,7 @@ def _write_preview(out_dir: Path, frames: _FrameMetrics, state: ParticleState, t
 def simulate(cfg: DictConfig) -> dict[str, Any]:
     """``task=simulate``: roll out ``cfg.model`` on ``cfg.scene`` and write the three output files."""
     torch.manual_seed(int(cfg.seed))
-    if cfg.threads:
-        torch.set_num_threads(int(cfg.threads))
+    apply_threads(cfg)
     if int(cfg.steps) < 0 or int(cfg.write_every) < 1:
         raise RolloutError(
             f"need steps >= 0 and write_every >= 1, got steps={cfg.steps}, write_every={cfg.write_every}"

@@ -48,6 +48,7 @@ from torch_geometric.loader import DataLoader
 from tqdm import tqdm
 
 import lagfluid
+from lagfluid.config import apply_threads
 from lagfluid.data.datasets import load_metadata
 from lagfluid.errors import ConfigError, LagfluidError
 from lagfluid.models.checkpoint import export_weights, network_payload, read_checkpoint, save_checkpoint
@@ -335,8 +336,7 @@ def train(cfg: DictConfig) -> list[dict[str, Any]]:
             f"unknown stage '{stage}' of model {model}; available: {', '.join(trainables)}, all"
         )
     names = list(trainables) if stage == "all" else [stage]
-    if cfg.get("threads"):
-        torch.set_num_threads(int(cfg.threads))
+    apply_threads(cfg)
     out_dir = Path(str(cfg.out_dir))
     out_dir.mkdir(parents=True, exist_ok=True)
     summaries = [train_one(cfg, trainables[name], out_dir) for name in names]

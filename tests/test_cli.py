@@ -281,3 +281,12 @@ def test_threads_on_the_command_line_reach_openmp_before_torch_loads(monkeypatch
     monkeypatch.setenv("OMP_NUM_THREADS", "4")  # the user's own setting wins
     limit_openmp(["threads=1"])
     assert os.environ["OMP_NUM_THREADS"] == "4"
+
+
+@pytest.mark.parametrize("value", ["0", "-1", "abc", "1.5"])
+def test_threads_that_are_not_a_positive_whole_number_are_refused(value):
+    from lagfluid.config import apply_threads
+    from lagfluid.errors import ConfigError
+
+    with pytest.raises(ConfigError, match=r"threads must be a whole number >= 1 \(or null: every core\)"):
+        apply_threads(_compose(f"threads={value}"))

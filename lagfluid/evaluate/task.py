@@ -14,6 +14,7 @@ from omegaconf import DictConfig, OmegaConf
 
 import lagfluid
 from lagfluid.config import (
+    apply_threads,
     at_simulator_time_step,
     build_initial_state,
     build_simulator,
@@ -81,8 +82,7 @@ def evaluate(cfg: DictConfig) -> dict[str, Any]:
     """
     start = time.perf_counter()
     torch.manual_seed(int(cfg.seed))
-    if cfg.threads:
-        torch.set_num_threads(int(cfg.threads))
+    apply_threads(cfg)
     options = EvaluateOptions.from_config(cfg.evaluate)
     steps, write_every = int(cfg.steps), int(cfg.write_every)
     if steps < 1 or write_every < 1:

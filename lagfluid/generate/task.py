@@ -7,9 +7,9 @@ import time
 from collections.abc import Sequence
 from typing import Any
 
-import torch
 from omegaconf import DictConfig
 
+from lagfluid.config import apply_threads
 from lagfluid.data.layout import (
     METADATA_FILE,
     SPLITS,
@@ -34,8 +34,7 @@ def generate(cfg: DictConfig) -> dict[str, Any] | None:
         LagfluidError: bad settings, a scene file from another configuration, or scenes stopped by the guard
             (named; the others are still generated).
     """
-    if cfg.get("threads"):
-        torch.set_num_threads(int(cfg.threads))
+    apply_threads(cfg)
     spec = DataSpec.from_config(cfg)
     if "seed" not in spec.scene_options:
         log.warning(
