@@ -21,7 +21,7 @@ from typing import Any
 import torch
 from tqdm import tqdm
 
-from lagfluid.errors import RolloutError
+from lagfluid.errors import ConfigError, RolloutError
 from lagfluid.models.simulator import Simulator
 from lagfluid.state import ParticleState
 
@@ -41,6 +41,19 @@ class Guard:
 
     max_courant: float = 0.5
     check_every: int = 1
+
+    def __post_init__(self) -> None:
+        """Refuse settings that would divide by zero or never pass."""
+        if (
+            isinstance(self.check_every, bool)
+            or not isinstance(self.check_every, int)
+            or self.check_every < 1
+        ):
+            raise ConfigError(
+                f"solver.guard.check_every must be a whole number >= 1, got {self.check_every!r}"
+            )
+        if not (isinstance(self.max_courant, (int, float)) and self.max_courant > 0):
+            raise ConfigError(f"solver.guard.max_courant must be > 0, got {self.max_courant!r}")
 
     def check(self, state: ParticleState) -> None:
         """Raise :class:`RolloutError` when ``state`` is non-finite, outside its domain or too fast."""

@@ -290,3 +290,22 @@ def test_threads_that_are_not_a_positive_whole_number_are_refused(value):
 
     with pytest.raises(ConfigError, match=r"threads must be a whole number >= 1 \(or null: every core\)"):
         apply_threads(_compose(f"threads={value}"))
+
+
+@pytest.mark.parametrize(
+    ("override", "message"),
+    [
+        ("solver.guard.check_every=0", "check_every must be a whole number >= 1, got 0"),
+        ("solver.guard.max_courant=0", "max_courant must be > 0, got 0"),
+    ],
+)
+def test_a_guard_that_cannot_work_is_refused_before_the_rollout(tmp_path, override, message):
+    from lagfluid.errors import ConfigError
+    from lagfluid.simulate import simulate
+
+    with pytest.raises(ConfigError, match=message):
+        simulate(
+            _compose(
+                "model=mps", "scene=dam_small", "steps=2", "write_every=2", override, f"out_dir={tmp_path}"
+            )
+        )
