@@ -19,7 +19,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 import lagfluid
-from lagfluid.errors import ConfigError, RolloutError, SceneError
+from lagfluid.errors import ConfigError, SceneError
 from lagfluid.models.simulator import Simulator, check_simulator
 from lagfluid.registry import check_scene_name, get_simulator_factory
 from lagfluid.rollout import Guard
@@ -85,19 +85,20 @@ def run_dtype(cfg: DictConfig) -> torch.dtype:
 
 
 def run_device(cfg: DictConfig) -> torch.device:
-    """The torch device of ``cfg.device``.
+    """The torch device of ``cfg.device``: ``cpu`` or ``cuda[:N]`` (what lagfluid's kernels are written for).
 
     Raises:
-        RolloutError: not a device string, or CUDA asked for where torch sees none.
+        ConfigError: not a device string, another device type (``mps``, ``meta``), or CUDA asked for where
+            torch sees none.
     """
     try:
         device = torch.device(str(cfg.device))
     except RuntimeError as err:
-        raise RolloutError(f"unknown device '{cfg.device}': {err}") from err
+        raise ConfigError(f"unknown device '{cfg.device}'; use device=cpu or device=cuda[:N]") from err
+    if device.type not in ("cpu", "cuda"):
+        raise ConfigError(f"device={cfg.device} is not supported; use device=cpu or device=cuda[:N]")
     if device.type == "cuda" and not torch.cuda.is_available():
-        raise RolloutError(
-            f"device={cfg.device} was asked for, but torch sees no CUDA device; use device=cpu"
-        )
+        raise ConfigError(f"device={cfg.device} was asked for, but torch sees no CUDA device; use device=cpu")
     return device
 
 

@@ -48,7 +48,7 @@ from torch_geometric.loader import DataLoader
 from tqdm import tqdm
 
 import lagfluid
-from lagfluid.config import apply_threads
+from lagfluid.config import apply_threads, run_device
 from lagfluid.data.datasets import load_metadata
 from lagfluid.errors import ConfigError, LagfluidError
 from lagfluid.models.checkpoint import export_weights, network_payload, read_checkpoint, save_checkpoint
@@ -180,7 +180,7 @@ def train_one(cfg: DictConfig, trainable: Trainable, out_dir: Path) -> dict[str,
     ckpt_path, csv_path = out_dir / f"{kind}.pt", out_dir / f"{kind}_loss.csv"
 
     torch.manual_seed(int(cfg.seed))
-    device = torch.device(str(cfg.device))
+    device = run_device(cfg)
     net = trainable.build_network()
     optimizer = torch.optim.Adam(net.parameters(), lr=float(tcfg.lr_start), eps=adam_eps)
     start_step, elapsed, stats = 0, 0.0, None

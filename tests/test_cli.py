@@ -1,5 +1,6 @@
 import json
 import os
+import re
 import subprocess
 import sys
 
@@ -309,3 +310,19 @@ def test_a_guard_that_cannot_work_is_refused_before_the_rollout(tmp_path, overri
                 "model=mps", "scene=dam_small", "steps=2", "write_every=2", override, f"out_dir={tmp_path}"
             )
         )
+
+
+@pytest.mark.parametrize(
+    ("device", "message"),
+    [
+        ("bogus", "unknown device 'bogus'; use device=cpu or device=cuda"),
+        ("mps", "device=mps is not supported; use device=cpu or device=cuda"),
+        ("meta", "device=meta is not supported"),
+    ],
+)
+def test_a_device_lagfluid_cannot_run_on_is_refused_naming_it(device, message):
+    from lagfluid.config import run_device
+    from lagfluid.errors import ConfigError
+
+    with pytest.raises(ConfigError, match=re.escape(message)):
+        run_device(_compose(f"device={device}"))

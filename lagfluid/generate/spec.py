@@ -14,7 +14,7 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from lagfluid.config import scene_params
+from lagfluid.config import run_device, scene_params
 from lagfluid.data.layout import (
     SAMPLES_FORMAT_VERSION,
     SPLITS,
@@ -148,7 +148,7 @@ class DataSpec:
             collision=collision,
             solver=OmegaConf.to_container(cfg.solver, resolve=True),
             dtype=dtype,
-            device=torch.device(cfg.device),
+            device=run_device(cfg),
             policy=policy_identity(cfg),
         )
 
