@@ -61,7 +61,13 @@ def scene_params(cfg: DictConfig) -> SceneParams:
             raise SceneError("scene=trajectory needs scene.path=<a lagfluid trajectory file (.h5)>")
         raw = {**trajectory_params(cfg.scene.path), **{k: v for k, v in raw.items() if v is not None}}
     if "gravity" in raw:
-        raw["gravity"] = tuple(float(g) for g in raw["gravity"])
+        try:  # a vector; a scalar (scene.params.gravity=9.8) would fail inside SceneParams' checks
+            raw["gravity"] = tuple(float(v) for v in raw["gravity"])
+        except (TypeError, ValueError):
+            raise SceneError(
+                "scene.params.gravity must be a vector [gx, gy, gz] in m/s^2, e.g. [0, 0, -9.81]; "
+                f"got {raw['gravity']!r}"
+            ) from None
     return SceneParams(**raw).with_overrides(dt=cfg.dt)
 
 

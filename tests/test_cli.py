@@ -326,3 +326,12 @@ def test_a_device_lagfluid_cannot_run_on_is_refused_naming_it(device, message):
 
     with pytest.raises(ConfigError, match=re.escape(message)):
         run_device(_compose(f"device={device}"))
+
+
+@pytest.mark.parametrize("value", ["9.8", "[0,-9.8]"])
+def test_gravity_that_is_not_a_3_vector_is_refused_naming_it(value):
+    from lagfluid.config import scene_params
+    from lagfluid.errors import SceneError
+
+    with pytest.raises(SceneError, match=r"gravity must be .*(vector|three finite numbers)"):
+        scene_params(_compose(f"scene.params.gravity={value}"))
