@@ -71,6 +71,27 @@ def scene_params(cfg: DictConfig) -> SceneParams:
     return SceneParams(**raw).with_overrides(dt=cfg.dt)
 
 
+# top-level keys every task reads as whole numbers, with their smallest valid value
+_WHOLE_NUMBERS = {"steps": 0, "seed": 0, "write_every": 1, "num_scenes": 1}
+
+
+def check_run_numbers(cfg: DictConfig) -> None:
+    """Refuse a top-level ``steps``, ``seed``, ``write_every``, ``num_scenes`` or ``dt`` of the wrong kind.
+
+    ``steps=abc`` would otherwise fail deep inside a task; every task checks these first (``dispatch``).
+
+    Raises:
+        ConfigError: naming the key and the value.
+    """
+    for key, least in _WHOLE_NUMBERS.items():
+        value = cfg.get(key)
+        if isinstance(value, bool) or not isinstance(value, int) or value < least:
+            raise ConfigError(f"{key} must be a whole number >= {least}, got {value!r}")
+    dt = cfg.get("dt")
+    if dt is not None and (isinstance(dt, bool) or not isinstance(dt, (int, float)) or not dt > 0):
+        raise ConfigError(f"dt must be a time step > 0 in s (or null: the scene's), got {dt!r}")
+
+
 def apply_threads(cfg: DictConfig) -> None:
     """Give torch ``cfg.threads`` intra-op threads; ``null`` keeps torch's default (every core).
 

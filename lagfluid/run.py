@@ -79,8 +79,9 @@ def _register_plugin_configs() -> None:
 
 def dispatch(cfg: DictConfig) -> None:
     """Run the task named by ``cfg.task``; a multirun job writes into its own folder under ``out_dir``."""
-    from lagfluid.config import multirun_out_dir
+    from lagfluid.config import check_run_numbers, multirun_out_dir
 
+    check_run_numbers(cfg)
     job_dir = multirun_out_dir(cfg)
     if job_dir is not None:
         with open_dict(cfg):

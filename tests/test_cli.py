@@ -335,3 +335,21 @@ def test_gravity_that_is_not_a_3_vector_is_refused_naming_it(value):
 
     with pytest.raises(SceneError, match=r"gravity must be .*(vector|three finite numbers)"):
         scene_params(_compose(f"scene.params.gravity={value}"))
+
+
+@pytest.mark.parametrize(
+    ("override", "message"),
+    [
+        ("steps=abc", "steps must be a whole number >= 0, got 'abc'"),
+        ("seed=abc", "seed must be a whole number >= 0, got 'abc'"),
+        ("write_every=0", "write_every must be a whole number >= 1, got 0"),
+        ("dt=abc", "dt must be a time step > 0 in s (or null: the scene's), got 'abc'"),
+        ("dt=-0.001", "dt must be a time step > 0 in s (or null: the scene's), got -0.001"),
+    ],
+)
+def test_top_level_numbers_of_the_wrong_kind_are_refused_naming_them(override, message):
+    from lagfluid.errors import ConfigError
+    from lagfluid.run import dispatch
+
+    with pytest.raises(ConfigError, match=re.escape(message)):
+        dispatch(_compose(override))
