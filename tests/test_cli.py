@@ -9,8 +9,11 @@ from hydra import compose, initialize_config_dir
 from hydra.errors import ConfigCompositionException
 from omegaconf.errors import ConfigAttributeError
 
+from lagfluid.config import apply_threads, run_device, scene_params
+from lagfluid.errors import ConfigError, SceneError
 from lagfluid.registry import UnknownNameError, available_simulators, get_simulator_factory, trainable_models
-from lagfluid.run import CONF_DIR, _group_names, available_models, check_command_line
+from lagfluid.run import CONF_DIR, _group_names, available_models, check_command_line, dispatch
+from lagfluid.simulate import simulate
 
 
 def _compose(*overrides):
@@ -286,9 +289,6 @@ def test_threads_on_the_command_line_reach_openmp_before_torch_loads(monkeypatch
 
 @pytest.mark.parametrize("value", ["0", "-1", "abc", "1.5"])
 def test_threads_that_are_not_a_positive_whole_number_are_refused(value):
-    from lagfluid.config import apply_threads
-    from lagfluid.errors import ConfigError
-
     with pytest.raises(ConfigError, match=r"threads must be a whole number >= 1 \(or null: every core\)"):
         apply_threads(_compose(f"threads={value}"))
 
@@ -301,9 +301,6 @@ def test_threads_that_are_not_a_positive_whole_number_are_refused(value):
     ],
 )
 def test_a_guard_that_cannot_work_is_refused_before_the_rollout(tmp_path, override, message):
-    from lagfluid.errors import ConfigError
-    from lagfluid.simulate import simulate
-
     with pytest.raises(ConfigError, match=message):
         simulate(
             _compose(
@@ -321,18 +318,12 @@ def test_a_guard_that_cannot_work_is_refused_before_the_rollout(tmp_path, overri
     ],
 )
 def test_a_device_lagfluid_cannot_run_on_is_refused_naming_it(device, message):
-    from lagfluid.config import run_device
-    from lagfluid.errors import ConfigError
-
     with pytest.raises(ConfigError, match=re.escape(message)):
         run_device(_compose(f"device={device}"))
 
 
 @pytest.mark.parametrize("value", ["9.8", "[0,-9.8]"])
 def test_gravity_that_is_not_a_3_vector_is_refused_naming_it(value):
-    from lagfluid.config import scene_params
-    from lagfluid.errors import SceneError
-
     with pytest.raises(SceneError, match=r"gravity must be .*(vector|three finite numbers)"):
         scene_params(_compose(f"scene.params.gravity={value}"))
 
@@ -348,8 +339,5 @@ def test_gravity_that_is_not_a_3_vector_is_refused_naming_it(value):
     ],
 )
 def test_top_level_numbers_of_the_wrong_kind_are_refused_naming_them(override, message):
-    from lagfluid.errors import ConfigError
-    from lagfluid.run import dispatch
-
     with pytest.raises(ConfigError, match=re.escape(message)):
         dispatch(_compose(override))
