@@ -10,8 +10,9 @@ or ``huber`` at ``train.huber_delta``), Adam, the learning rate decayed exponent
 ``train.lr_start`` to ``train.lr_end`` over ``train.iterations.<name>`` iterations in batches of
 ``train.batch_size.<name>``. Normalisation statistics are fitted by the trainable from
 ``train.stat_samples`` training items before the first iteration and live in the network's buffers.
-``train.init_from=DIR`` (optional) fine-tunes: the network starts from ``DIR/<name>.pt``'s weights and keeps
-its statistics.
+``train.extra_data=[DIR, ...]`` (optional) adds those datasets' train splits to ``data.out_dir``'s
+(validation stays on ``data.out_dir``'s). ``train.init_from=DIR`` (optional) fine-tunes: the network starts
+from ``DIR/<name>.pt``'s weights and keeps its statistics.
 Measurements behind the profiles: ``docs/training.md``.
 
 **Outputs** in ``out_dir`` (default ``runs/train/<model>-<data>``): ``<name>.pt`` (model, kind, network,
@@ -23,9 +24,15 @@ rename). A rerun with the same command continues from it (weights, optimizer, RN
 the checkpoint dropped); a finished trainable is skipped; a checkpoint of other network options, data or
 settings is an error, never silently mixed. A non-finite loss stops the run naming the iteration.
 
+**On-policy rounds.** ``train.onpolicy.rounds=R`` (with ``stage=all``, or a stage in
+``train.onpolicy.trainables``) then fine-tunes those networks on R rounds of the model's own rollouts
+labelled by the exact solver (DAgger; :mod:`lagfluid.onpolicy_rounds`); the last round's folder holds the
+run's final networks.
+
 **Export.** With ``export_to=DIR`` the trained networks are copied into ``DIR`` once every trainable of the
-run has finished, without optimizer and RNG state (:func:`lagfluid.models.checkpoint.export_weights`; the
-``retrain_*`` experiments set it to the shipped weights' folder).
+run has finished (with rounds: the last round's), without optimizer and RNG state
+(:func:`lagfluid.models.checkpoint.export_weights`; the ``retrain_*`` experiments set it to the shipped
+weights' folder).
 """
 
 from __future__ import annotations
@@ -44,6 +51,7 @@ from typing import Any
 import torch
 from omegaconf import DictConfig
 from torch import Tensor, nn
+from torch.utils.data import ConcatDataset
 from torch_geometric.loader import DataLoader
 from tqdm import tqdm
 
@@ -53,6 +61,7 @@ from lagfluid.data.datasets import load_metadata
 from lagfluid.errors import ConfigError, LagfluidError
 from lagfluid.models.checkpoint import export_weights, network_payload, read_checkpoint, save_checkpoint
 from lagfluid.models.trainable import Trainable
+from lagfluid.onpolicy_rounds import OnPolicy, check_same_scenes, run_rounds
 from lagfluid.registry import get_trainables
 
 log = logging.getLogger(__name__)
@@ -154,6 +163,7 @@ def train_one(cfg: DictConfig, trainable: Trainable, out_dir: Path) -> dict[str,
     delta = float(tcfg.get("huber_delta", 1.0))
     loss_fn = _loss_fn(trainable, loss_name, delta)
     data_dir = Path(str(cfg.data.out_dir))
+    extra_dirs = [Path(str(d)) for d in tcfg.get("extra_data") or []]
     metadata = load_metadata(data_dir)
     identity = {
         "options": options,
@@ -163,6 +173,11 @@ def train_one(cfg: DictConfig, trainable: Trainable, out_dir: Path) -> dict[str,
         "lr": [float(tcfg.lr_start), float(tcfg.lr_end)],
         "iterations": iterations,
     }
+    if extra_dirs:  # only then, as below
+        identity["extra_data"] = [
+            {"dir": str(d.resolve()), "scenes": load_metadata(d).get("splits", {}).get("train")}
+            for d in extra_dirs
+        ]
     if loss_name != "mse":  # only then: checkpoints trained before the option existed keep their fingerprint
         identity["loss"] = {"name": loss_name, "delta": delta}
     milestones = [int(m) for m in tcfg.get("lr_milestones") or []]
@@ -216,6 +231,8 @@ def train_one(cfg: DictConfig, trainable: Trainable, out_dir: Path) -> dict[str,
         _truncate_csv(csv_path, start_step)
 
     train_items, valid_items = trainable.datasets(data_dir)
+    if extra_dirs:  # the union: each dataset's train split trains, data.out_dir's valid split validates
+        train_items = ConcatDataset([train_items, *(trainable.datasets(d)[0] for d in extra_dirs)])
     if len(train_items) == 0:
         raise LagfluidError(f"no {kind} training samples in {data_dir}")
     generator = torch.Generator().manual_seed(int(cfg.seed) + start_step)
@@ -336,10 +353,18 @@ def train(cfg: DictConfig) -> list[dict[str, Any]]:
             f"unknown stage '{stage}' of model {model}; available: {', '.join(trainables)}, all"
         )
     names = list(trainables) if stage == "all" else [stage]
+    onpolicy = OnPolicy.from_config(cfg, list(trainables))
+    with_rounds = onpolicy.rounds > 0 and (stage == "all" or stage in onpolicy.trainables)
+    if with_rounds:  # a command that cannot remake the dataset's scenes fails now, not after the training
+        check_same_scenes(cfg)
     apply_threads(cfg)
     out_dir = Path(str(cfg.out_dir))
     out_dir.mkdir(parents=True, exist_ok=True)
     summaries = [train_one(cfg, trainables[name], out_dir) for name in names]
+    sources = dict.fromkeys(names, out_dir)  # where each trained network ends up
+    if with_rounds:
+        last_round = run_rounds(cfg, onpolicy, out_dir, train_one)
+        sources = {name: last_round for name in names}
     export_to = cfg.get("export_to")
     if export_to:
         dest = Path(str(export_to))
@@ -349,7 +374,7 @@ def train(cfg: DictConfig) -> list[dict[str, Any]]:
                 "the repository root or give an absolute path"
             )
         dest.mkdir(exist_ok=True)
-        for name in names:  # only this run's trainables: out_dir may hold other checkpoints
-            written = export_weights(out_dir, export_to, kinds=[name])
+        for name, source in sources.items():  # only this run's trainables: out_dir may hold others
+            written = export_weights(source, export_to, kinds=[name])
             log.info("%s: exported to %s", name, written[0])
     return summaries

@@ -33,6 +33,7 @@ LAYERS: dict[str, tuple[str, ...]] = {
         "lagfluid.generate.*",
         "lagfluid.train",
         "lagfluid.train.*",
+        "lagfluid.onpolicy_rounds",  # task=train's DAgger rounds (generate, then fine-tune)
         "lagfluid.evaluate*",
         "lagfluid.tables*",
         "lagfluid.export",

@@ -105,10 +105,15 @@ def test_the_retrain_command_trains_exports_and_times_a_sweep(tmp_path):
         "train.iterations={advection: 2, collision: 2, pressure: 2}",
         "train.batch_size={advection: 1, collision: 1, pressure: 1}",
         "train.stat_samples=2",
+        "train.onpolicy.iterations=2",
         "threads=1",
     ]
     done = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr[-3000:]
     assert sorted(p.name for p in exported.glob("*.pt")) == ["advection.pt", "pressure.pt"]
-    assert read_checkpoint(exported / "pressure.pt")["step"] == 2
+    pressure = read_checkpoint(exported / "pressure.pt")
+    assert pressure["step"] == 2
+    # the recipe's last on-policy round is what ships: fine-tuned from round 1's net
+    init_from = json.loads(pressure["meta"]["identity"])["init_from"]
+    assert init_from.endswith(str(Path("onpolicy", "round1")))  # in the job's folder of out_dir
     assert json.loads((sweep / FILE_NAME).read_text())["wall_s"] > 0

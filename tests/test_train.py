@@ -103,6 +103,17 @@ def test_the_generic_loop_trains_any_registered_trainable(tiny_data, tmp_path, m
         train(_compose("task=train", "model=fgn", "stage=advection", f"data.out_dir={tiny_data}"))
 
 
+def test_extra_data_trains_on_the_union_of_the_datasets_train_splits(tiny_data, tmp_path, monkeypatch):
+    monkeypatch.setitem(registry._REGISTERED_TRAINABLES, "fgn", lambda cfg: {"line": LinearFit("line")})
+    common = ["task=train", "model=fgn", "data=tiny", f"data.out_dir={tiny_data}", "progress=false"]
+    common += ["+train.iterations.line=1", "+train.batch_size.line=2"]
+    train(_compose(*common, f"out_dir={tmp_path / 'one'}"))
+    train(_compose(*common, f"out_dir={tmp_path / '2'}", f"train.extra_data=[{tiny_data}]"))
+    one, two = (read_checkpoint(tmp_path / d / "line.pt", "line", model="toy")["meta"] for d in ("one", "2"))
+    assert one["stats"] == {"items": 6} and two["stats"] == {"items": 12}  # 6 training items per dataset
+    assert one["fingerprint"] != two["fingerprint"]  # a resume never mixes the two
+
+
 def test_init_from_fine_tunes_trained_weights_with_their_statistics(tiny_data, tmp_path, monkeypatch):
     monkeypatch.setitem(registry._REGISTERED_TRAINABLES, "fgn", lambda cfg: {"line": LinearFit("line")})
     common = [

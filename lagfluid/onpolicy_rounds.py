@@ -1,0 +1,210 @@
+"""``train.onpolicy.rounds=R``: DAgger after the one-step training, with the MPS solver as the expert.
+
+A network trained on the solver's trajectories meets, in its own rollouts, states the solver never visits
+(a learned pressure that under-corrects leaves the fluid more compressed than MPS ever is). Round k of
+``R`` (in a ``task=train`` run's ``out_dir``):
+
+1. ``<out_dir>/onpolicy/round<k>/data``: the training dataset's own scenes (same scene, seeds, steps,
+   materials) rolled out by the run's model with its networks of round k-1 (round 0: the one-step trained
+   ones in ``out_dir``), each sample labelled by the exact MPS stage at the model's own state
+   (``data.policy=model``, :mod:`lagfluid.generate.policy`);
+2. each of ``train.onpolicy.trainables`` (the pressure net by default) fine-tuned on it (with
+   ``train.onpolicy.aggregate``: on rounds 1..k's data together) from its round k-1 weights:
+   ``train.onpolicy.iterations`` at ``train.onpolicy.lr_start`` decaying to ``train.lr_end``, PPE term
+   at ``train.onpolicy.ppe_weight``, into ``<out_dir>/onpolicy/round<k>/<name>.pt``; the model's
+   other networks are copied beside it (no optimizer state), so each round folder is a complete
+   ``model.weights`` for the next round, for ``task=evaluate`` and for the export.
+
+Everything resumes: finished scenes are skipped by ``task=generate``, a fine-tune continues from its
+checkpoint, a finished one is skipped. The regenerated scenes must be the dataset's: the command has to
+give the settings the dataset was generated with (``scene=random``); the scenes' fingerprints are checked
+before any simulation. What each round bought on the dam: ``benchmarks/results/fgn_recipe.md``.
+"""
+
+from __future__ import annotations
+
+import copy
+import logging
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from omegaconf import DictConfig, open_dict
+
+from lagfluid.data.datasets import load_metadata
+from lagfluid.data.layout import scene_path
+from lagfluid.errors import ConfigError, LagfluidError
+from lagfluid.models.checkpoint import export_weights
+from lagfluid.registry import get_trainables
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class OnPolicy:
+    """``train.onpolicy``, checked.
+
+    Attributes:
+        rounds: R, the number of rounds (0: none).
+        trainables: the networks fine-tuned in each round (names of the model's trainables).
+        iterations: fine-tuning iterations per round and trainable.
+        lr_start: learning rate of each round's first iteration (decays to ``train.lr_end``).
+        ppe_weight: the pressure net's PPE term while fine-tuning (``train.ppe_weight``'s meaning).
+        aggregate: round k fine-tunes on the union of rounds 1..k's data (DAgger's aggregation) instead
+            of round k's alone.
+    """
+
+    rounds: int
+    trainables: tuple[str, ...]
+    iterations: int
+    lr_start: float
+    ppe_weight: float
+    aggregate: bool = False
+
+    @classmethod
+    def from_config(cls, cfg: DictConfig, model_trainables: Sequence[str]) -> OnPolicy:
+        """Read ``cfg.train.onpolicy`` (absent: no rounds).
+
+        Raises:
+            ConfigError: a negative or fractional number of rounds or iterations, a learning rate <= 0,
+                or a trainable the model does not have.
+        """
+        section = cfg.train.get("onpolicy") or {}
+        rounds, iterations = section.get("rounds", 0) or 0, section.get("iterations", 1)
+        for key, value, least in (("rounds", rounds, 0), ("iterations", iterations, 1)):
+            if isinstance(value, bool) or not isinstance(value, int) or value < least:
+                raise ConfigError(f"train.onpolicy.{key} must be a whole number >= {least}, got {value!r}")
+        names = tuple(str(n) for n in section.get("trainables") or ())
+        unknown = [n for n in names if n not in model_trainables]
+        if rounds and (unknown or not names):
+            raise ConfigError(
+                f"train.onpolicy.trainables={list(names)}: model {cfg.model.name} trains "
+                f"{', '.join(model_trainables)}"
+            )
+        lr_start = float(section.get("lr_start") or cfg.train.lr_start)
+        if not lr_start > 0:
+            raise ConfigError(f"train.onpolicy.lr_start must be > 0, got {lr_start}")
+        return cls(
+            rounds,
+            names,
+            int(iterations),
+            lr_start,
+            float(section.get("ppe_weight") or 0.0),
+            bool(section.get("aggregate", False)),
+        )
+
+
+def round_dir(out_dir: Path, k: int) -> Path:
+    """Round ``k``'s folder (its data and networks); round 0 is ``out_dir`` itself."""
+    return out_dir if k == 0 else out_dir / "onpolicy" / f"round{k}"
+
+
+def _policy_data_config(cfg: DictConfig, policy_dir: Path | None, data_dir: Path) -> DictConfig:
+    """``cfg`` as the ``task=generate`` of the training dataset's scenes (``policy_dir``: its networks).
+
+    ``policy_dir=None``: the dataset itself (moved by the solver), to check that this config makes it.
+    """
+    gen = copy.deepcopy(cfg)
+    with open_dict(gen):
+        gen.task = "generate"
+        gen.steps = int(cfg.data.steps)
+        gen.num_scenes = int(cfg.data.num_scenes)
+        gen.data.scene_index = None
+        gen.data.out_dir = str(data_dir)
+        if policy_dir is not None:
+            gen.data.name = f"{cfg.data.name}_onpolicy"
+            gen.data.policy = "model"
+            gen.data.next_steps = 0  # the trajectory is the model's: no windows for trajectory learners
+            gen.model.weights = str(policy_dir)
+    return gen
+
+
+def check_same_scenes(cfg: DictConfig) -> None:
+    """Refuse a command that would not regenerate the training dataset's own scenes.
+
+    Raises:
+        ConfigError: a scene of ``data.out_dir`` was made with other settings than this command's
+            (another ``scene=``, seed, steps, dt or solver), named with the dataset's scene builder.
+    """
+    from lagfluid.generate.scene import scene_done
+    from lagfluid.generate.spec import DataSpec
+
+    data_dir = Path(str(cfg.data.out_dir))
+    spec = DataSpec.from_config(_policy_data_config(cfg, None, data_dir))
+    for k in range(spec.num_scenes):
+        try:
+            same = scene_done(scene_path(data_dir, k), spec.fingerprint(k))
+        except LagfluidError:  # made with another configuration
+            same = False
+        if not same:
+            builder = load_metadata(data_dir).get("scene", {}).get("builder", "?")
+            raise ConfigError(
+                f"train.onpolicy.rounds regenerates the scenes of {data_dir} moved by the model, but this "
+                f"command does not make scene {k} as it was made (scene={cfg.scene.name}; the dataset's is "
+                f"scene={builder}); give the settings the dataset was generated with"
+            )
+
+
+def run_rounds(
+    cfg: DictConfig,
+    settings: OnPolicy,
+    out_dir: Path,
+    train_one: Callable[[DictConfig, Any, Path], dict[str, Any]],
+) -> Path:
+    """Run (or resume) every round after the one-step training in ``out_dir``.
+
+    Args:
+        cfg: the ``task=train`` config.
+        settings: its ``train.onpolicy`` (:meth:`OnPolicy.from_config`, rounds >= 1).
+        out_dir: the run's folder, holding each of the model's one-step trained ``<name>.pt``.
+        train_one: :func:`lagfluid.train.train_one` (passed in: this module is one of its callers').
+
+    Returns:
+        the last round's folder (a complete ``model.weights``).
+
+    Raises:
+        ConfigError: a network of the model missing from ``out_dir``, or a command that does not
+            regenerate the dataset's scenes (:func:`check_same_scenes`).
+    """
+    from lagfluid.generate import generate
+
+    model = str(cfg.model.name)
+    owned = list(get_trainables(model, cfg))
+    missing = [name for name in owned if not (out_dir / f"{name}.pt").is_file()]
+    if missing:
+        raise ConfigError(
+            f"train.onpolicy.rounds={settings.rounds}: the rounds roll out the run's own model, but "
+            f"{', '.join(missing)}.pt is not in {out_dir}; train stage=all (or those stages) first"
+        )
+    for k in range(1, settings.rounds + 1):
+        previous, here = round_dir(out_dir, k - 1), round_dir(out_dir, k)
+        data_dir = here / "data"
+        here.mkdir(parents=True, exist_ok=True)
+        log.info(
+            "on-policy round %d of %d: %s's model rolls out the scenes into %s",
+            k,
+            settings.rounds,
+            previous,
+            data_dir,
+        )
+        generate(_policy_data_config(cfg, previous, data_dir))
+        tuned = copy.deepcopy(cfg)
+        with open_dict(tuned):
+            tuned.data.out_dir = str(data_dir)
+            if settings.aggregate:
+                tuned.train.extra_data = [str(round_dir(out_dir, j) / "data") for j in range(1, k)]
+            tuned.train.init_from = str(previous)
+            tuned.train.lr_start = settings.lr_start
+            tuned.train.ppe_weight = settings.ppe_weight
+            for name in settings.trainables:
+                tuned.train.iterations[name] = settings.iterations
+        trainables = get_trainables(model, tuned)
+        for name in settings.trainables:
+            train_one(tuned, trainables[name], here)
+        # the model's other networks beside them, once: their bytes are in the next round's data fingerprint
+        others = [n for n in owned if n not in settings.trainables and not (here / f"{n}.pt").is_file()]
+        if others:
+            export_weights(out_dir, here, kinds=others)
+    log.info("on-policy rounds done: %s", round_dir(out_dir, settings.rounds))
+    return round_dir(out_dir, settings.rounds)
