@@ -49,6 +49,8 @@ def check_command_line(argv: Sequence[str]) -> str | None:
     ``experiment=`` (core and plugin config folders).
 
     ``stage=`` is checked by ``task=train`` against the model's trainables (from the registry).
+    A ``+key=value`` that appends a new top-level key is refused too: nothing reads it (Hydra's own hint after
+    a typo such as ``stepz=3`` is ``+stepz=3``, which would then be silently ignored).
     """
     known = {
         "model": available_models,
@@ -57,6 +59,10 @@ def check_command_line(argv: Sequence[str]) -> str | None:
     }
     for arg in argv:
         key, sep, value = arg.partition("=")
+        if arg.startswith("+") and not arg.startswith("++") and sep:
+            unknown = _unknown_appended_key(key[1:])
+            if unknown:
+                return unknown
         key = key.lstrip("+~")
         if not sep or key not in known or "," in value:  # multirun sweeps are checked per job
             continue
@@ -64,6 +70,22 @@ def check_command_line(argv: Sequence[str]) -> str | None:
         if value not in names:
             return f"lagfluid: unknown {key} '{value}'; available: {', '.join(names)}"
     return None
+
+
+def _unknown_appended_key(key: str) -> str | None:
+    """The one-line error for ``+key=...`` when ``key`` is a new top-level key (not a group), else None."""
+    import difflib
+
+    from omegaconf import OmegaConf
+
+    if "." in key or "/" in key or key in ("model", "task", *CONFIG_GROUPS):
+        return None  # a nested key (a plugin trainable's train.iterations.<name>) or a config group
+    top = sorted(k for k in OmegaConf.load(CONF_DIR / "config.yaml") if k not in ("defaults", "hydra"))
+    close = difflib.get_close_matches(key, top, n=1)
+    hint = f"did you mean {close[0]}=...? " if close else ""
+    return (
+        f"lagfluid: unknown key '{key}' (+{key}=... adds a key nothing reads); {hint}keys: {', '.join(top)}"
+    )
 
 
 def _register_plugin_configs() -> None:

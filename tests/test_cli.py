@@ -61,6 +61,20 @@ def test_cli_unknown_model_exits_nonzero_with_one_line():
     assert out.stderr.strip().splitlines() == [f"lagfluid: unknown solver 'nope'; available: {solvers}"]
 
 
+def test_an_appended_unknown_top_level_key_is_refused_with_a_hint():
+    msg = check_command_line(["+stepz=3"])
+    assert (
+        msg is not None
+        and msg.startswith("lagfluid: unknown key 'stepz'")
+        and "did you mean steps=...?" in msg
+    )
+    assert check_command_line(["+train.iterations.line=60", "++stepz=3", "+experiment=debug"]) is None
+    out = subprocess.run(
+        [sys.executable, "-m", "lagfluid.run", "+stepz=3"], capture_output=True, text=True, timeout=120
+    )
+    assert out.returncode == 2 and out.stderr.strip().splitlines() == [msg]
+
+
 def test_registry_unknown_name_lists_available():
     with pytest.raises(UnknownNameError, match=r"available: .*mps"):
         get_simulator_factory("nope")
