@@ -72,6 +72,27 @@ def check_command_line(argv: Sequence[str]) -> str | None:
     return None
 
 
+def check_out_dir_argument(argv: Sequence[str]) -> str | None:
+    """A one-line error when the command's ``out_dir=`` cannot become a folder we write into, else None.
+
+    Checked before Hydra, which makes the folder first and would fail with a traceback (a file there, a file
+    on the way, a folder without write permission).
+    """
+    for arg in argv:
+        key, _, value = arg.partition("=")
+        if key.lstrip("+") != "out_dir" or not value or "${" in value or "," in value:
+            continue
+        path = Path(value).expanduser().absolute()
+        if path.exists() and not path.is_dir():
+            return f"lagfluid: out_dir={value} is a file, not a folder"
+        ancestor = next(p for p in (path, *path.parents) if p.exists())
+        if not ancestor.is_dir():
+            return f"lagfluid: out_dir={value} cannot be made: {ancestor} is a file"
+        if not os.access(ancestor, os.W_OK | os.X_OK):
+            return f"lagfluid: out_dir={value} cannot be made or written: {ancestor} is not writable"
+    return None
+
+
 def _unknown_appended_key(key: str) -> str | None:
     """The one-line error for ``+key=...`` when ``key`` is a new top-level key (not a group), else None."""
     import difflib
@@ -166,6 +187,10 @@ def main() -> None:
     if problem:
         sys.stderr.write(problem + "\n")  # before Hydra has set up logging: one plain line
         sys.exit(2)
+    problem = check_out_dir_argument(sys.argv[1:])
+    if problem:
+        sys.stderr.write(problem + "\n")
+        sys.exit(1)
     _hydra_main()
 
 

@@ -12,7 +12,14 @@ from omegaconf.errors import ConfigAttributeError
 from lagfluid.config import apply_threads, run_device, scene_params
 from lagfluid.errors import ConfigError, SceneError
 from lagfluid.registry import UnknownNameError, available_simulators, get_simulator_factory, trainable_models
-from lagfluid.run import CONF_DIR, _group_names, available_models, check_command_line, dispatch
+from lagfluid.run import (
+    CONF_DIR,
+    _group_names,
+    available_models,
+    check_command_line,
+    check_out_dir_argument,
+    dispatch,
+)
 from lagfluid.simulate import simulate
 
 
@@ -73,6 +80,29 @@ def test_an_appended_unknown_top_level_key_is_refused_with_a_hint():
         [sys.executable, "-m", "lagfluid.run", "+stepz=3"], capture_output=True, text=True, timeout=120
     )
     assert out.returncode == 2 and out.stderr.strip().splitlines() == [msg]
+
+
+def test_an_out_dir_that_cannot_be_a_folder_is_refused_before_hydra_makes_it(tmp_path):
+    a_file = tmp_path / "a_file"
+    a_file.write_text("mine")
+    assert (
+        check_out_dir_argument([f"out_dir={a_file}"]) == f"lagfluid: out_dir={a_file} is a file, not a folder"
+    )
+    below = a_file / "run"
+    assert check_out_dir_argument([f"out_dir={below}"]) == (
+        f"lagfluid: out_dir={below} cannot be made: {a_file} is a file"
+    )
+    assert check_out_dir_argument([f"out_dir={tmp_path / 'new' / 'run'}", "steps=2"]) is None
+    out = subprocess.run(
+        [sys.executable, "-m", "lagfluid.run", "experiment=debug", f"out_dir={a_file}"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert out.returncode == 1 and out.stderr.strip().splitlines() == [
+        f"lagfluid: out_dir={a_file} is a file, not a folder"
+    ]
+    assert a_file.read_text() == "mine"
 
 
 def test_registry_unknown_name_lists_available():
