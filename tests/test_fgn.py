@@ -300,6 +300,27 @@ def test_authors_weights_that_do_not_fit_the_config_are_named(authors_weights):
         )
 
 
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ("{not json", r"adv_net.scalers.json: not readable JSON \(JSONDecodeError"),
+        ('{"vel_scaler": {"mean": [0], "var": [1]}}', r"'acc_scaler' must be .* got None"),
+        (
+            '{"vel_scaler": {"mean": [0], "var": [0]}, "acc_scaler": {"mean": [0], "var": [1]}}',
+            "'vel_scaler'",
+        ),
+        ('{"vel_scaler": {"mean": [0]}, "acc_scaler": {"mean": [0], "var": [1]}}', "'vel_scaler'"),
+        ("[1, 2]", "'vel_scaler'"),
+    ],
+)
+def test_malformed_authors_scalers_are_named_not_a_traceback(tmp_path, text, message):
+    from lagfluid.models.fgn.original import _scalers
+
+    (tmp_path / "adv_net.scalers.json").write_text(text)
+    with pytest.raises(CheckpointError, match=message):
+        _scalers("advection", tmp_path)
+
+
 def test_authors_pressure_net_matches_the_ppe_in_the_mean_on_their_dam(authors_weights, authors_dam_grid):
     """Cross-check of our scheme: their pressure net, fed by our stages, gives the PPE's pressure level.
 

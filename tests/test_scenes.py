@@ -417,6 +417,23 @@ def test_bad_grid_file_is_a_clear_error(tmp_path, change, message):
         build_scene("file", path=str(_npz(tmp_path, **arrays)))
 
 
+@pytest.mark.parametrize("damage", ["empty", "truncated", "random bytes", "a single .npy array"])
+def test_a_damaged_npz_grid_file_is_named_without_numpys_allow_pickle_hint(tmp_path, damage):
+    good = _npz(tmp_path, **_good_arrays()).read_bytes()
+    path = tmp_path / "damaged.npz"
+    if damage == "a single .npy array":
+        with path.open("wb") as f:
+            np.save(f, np.zeros((4, 3)))
+    else:
+        path.write_bytes(
+            {"empty": b"", "truncated": good[: len(good) // 2], "random bytes": bytes(range(256))}[damage]
+        )
+    with pytest.raises(SceneError) as err:
+        build_scene("file", path=str(path))
+    assert str(err.value).startswith(f"{path}: ") and "pos, vel, ptype" in str(err.value)
+    assert "allow_pickle" not in str(err.value)
+
+
 def test_missing_and_malformed_files_name_the_path(tmp_path):
     missing = tmp_path / "nope.npz"
     with pytest.raises(SceneError, match=f"grid file not found: {missing}"):

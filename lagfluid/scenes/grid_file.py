@@ -14,6 +14,7 @@ boundary particles gets no bounds.
 from __future__ import annotations
 
 import logging
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -64,11 +65,7 @@ def read_grid(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         raise SceneError(f"grid file not found: {path}")
     suffix = path.suffix.lower()
     if suffix == ".npz":
-        try:
-            with np.load(path, allow_pickle=False) as data:
-                arrays = {k: data[k] for k in data.files}
-        except (OSError, ValueError) as err:
-            raise SceneError(f"{path}: not a readable .npz file ({err})") from None
+        arrays = _npz_arrays(path)
         for key in ("pos", "vel", "ptype"):
             if key not in arrays:
                 raise SceneError(
@@ -119,6 +116,32 @@ def grid_bounds(pos: np.ndarray, ptype: np.ndarray) -> np.ndarray | None:
     upper = upper.copy()
     upper[2] += upper[2] - lower[2]
     return np.stack([lower, upper])
+
+
+def _npz_arrays(path: Path) -> dict[str, np.ndarray]:
+    """Every array of the ``.npz`` archive ``path``.
+
+    Raises:
+        SceneError: the file is empty, truncated, a single ``.npy`` array or no NumPy archive at all
+            (numpy's own message for the last suggests ``allow_pickle``: never the fix for a grid file).
+    """
+    expected = "expected a .npz archive of arrays pos, vel, ptype"
+    try:
+        data = np.load(path, allow_pickle=False)
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as err:
+        reason = "the file is empty" if path.stat().st_size == 0 else "truncated, or not a NumPy archive"
+        raise SceneError(
+            f"{path}: not a readable .npz file ({reason}: {type(err).__name__}); {expected}"
+        ) from None
+    if not isinstance(data, np.lib.npyio.NpzFile):
+        raise SceneError(f"{path}: holds a single array, not an archive; {expected}")
+    try:
+        with data:
+            return {k: data[k] for k in data.files}
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as err:
+        raise SceneError(
+            f"{path}: a damaged .npz archive ({type(err).__name__}: {err}); {expected}"
+        ) from None
 
 
 def load_grid(

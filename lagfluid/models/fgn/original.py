@@ -45,13 +45,32 @@ def _their_arrays(kind: str, directory: Path) -> dict[str, np.ndarray]:
         raise CheckpointError(f"cannot read {path}: {type(err).__name__}: {err}") from err
 
 
+_SCALERS = {"advection": ("vel_scaler", "acc_scaler"), "pressure": ("vel_scaler", "dns_scaler", "prs_scaler")}
+
+
 def _scalers(kind: str, directory: Path) -> dict[str, dict[str, list[float]]]:
     path = directory / f"{FILES[kind]}.scalers.json"
     if kind == "collision":
         return {}  # their collision net takes raw m/s and has no scaler
     if not path.is_file():
         raise CheckpointError(f"authors' {kind} scalers not found: {path}")
-    return json.loads(path.read_text())
+    try:
+        scalers = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise CheckpointError(f"{path}: not readable JSON ({type(err).__name__}: {err})") from None
+    for name in _SCALERS[kind]:  # each {"mean": [...], "var": [...]} of finite numbers, var > 0
+        entry = scalers.get(name) if isinstance(scalers, dict) else None
+        try:
+            mean, var = (np.asarray(entry[key], dtype=np.float64) for key in ("mean", "var"))  # type: ignore[index]
+            fine = mean.shape == var.shape and mean.ndim == 1 and np.isfinite(mean).all() and (var > 0).all()
+        except (TypeError, KeyError, ValueError):
+            fine = False
+        if not fine:
+            raise CheckpointError(
+                f'{path}: \'{name}\' must be {{"mean": [...], "var": [...]}} of finite numbers with var > 0, '
+                f"got {str(entry)[:120]}"
+            )
+    return scalers
 
 
 def _set(standardizer: nn.Module, scaler: dict[str, list[float]]) -> None:
