@@ -16,7 +16,7 @@ from torch_geometric.data import Batch, Data
 from lagfluid.config import build_initial_state, build_simulator
 from lagfluid.errors import ConfigError, LagfluidError
 from lagfluid.generate import generate
-from lagfluid.models.checkpoint import CheckpointError, read_checkpoint
+from lagfluid.models.checkpoint import CheckpointError, network_payload, read_checkpoint, save_checkpoint
 from lagfluid.models.fgn import networks as fgn_mod
 from lagfluid.models.fgn.networks import build_network, load_network
 from lagfluid.models.fgn.original import load_original_network
@@ -483,6 +483,18 @@ def test_bad_checkpoints_and_stages_are_clear_errors(tmp_path, tiny_data):
         train(_train_cfg(tiny_data, tmp_path, "stage=viscosity"))
     with pytest.raises(LagfluidError, match="network not found"):
         build_simulator(_compose("model=fgn", f"model.weights={tmp_path / 'none'}", "scene=dam_small"))
+
+
+@pytest.mark.parametrize(("key", "value"), [("width", -4), ("layers", 0), ("radius", -1.0), ("width", 2.5)])
+def test_a_checkpoint_with_impossible_options_is_named_before_torch_builds_it(tmp_path, key, value):
+    from lagfluid.models.fgn.networks import build_network, load_network
+
+    options = _model_options("pressure", "fgn")
+    payload = network_payload(build_network("pressure", options), "pressure", options, 0, {}, model="fgn")
+    payload["options"] = {**options, key: value}
+    save_checkpoint(tmp_path / "pressure.pt", payload)
+    with pytest.raises(CheckpointError, match=f"pressure network: {key} must be .* got {value}"):
+        load_network(tmp_path / "pressure.pt")
 
 
 def test_learning_rate_decays_from_start_to_end():

@@ -32,6 +32,7 @@ all (``none``, a per-node MLP layer): ``model=fgn_gcn``, ``fgn_sage``, ``fgn_mlp
 
 from __future__ import annotations
 
+import math
 import os
 from collections.abc import Sequence
 from typing import Any
@@ -571,9 +572,35 @@ def parameter_count(module: nn.Module) -> int:
     return sum(p.numel() for p in module.parameters() if p.requires_grad)
 
 
+_SIZE_KEYS = frozenset({"width", "layers", "encoder_hidden", "decoder_hidden"})
+_LENGTH_KEYS = frozenset({"radius", "gravity_scale"})
+
+
 def build_network(kind: str, options: dict[str, Any]) -> nn.Module:
-    """A fresh network of ``kind`` from its options (the ``model.<kind>`` config node as a dict)."""
+    """A fresh network of ``kind`` from its options (the ``model.<kind>`` config node as a dict).
+
+    Raises:
+        CheckpointError: an unknown kind or option name, or a size or radius that is no positive number
+            (from a config or from a checkpoint's own options), named before torch sees it.
+    """
     opts = {k: v for k, v in dict(options).items() if v is not None}
+    for key in _SIZE_KEYS & opts.keys():
+        value = opts[key]
+        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+            raise CheckpointError(
+                f"invalid options for the {kind} network: {key} must be a whole number >= 1, got {value!r}"
+            )
+    for key in _LENGTH_KEYS & opts.keys():
+        value = opts[key]
+        if (
+            isinstance(value, bool)
+            or not isinstance(value, int | float)
+            or not math.isfinite(value)
+            or value <= 0
+        ):
+            raise CheckpointError(
+                f"invalid options for the {kind} network: {key} must be a number > 0, got {value!r}"
+            )
     try:
         if kind == "collision":
             return CollisionNet(**opts)
