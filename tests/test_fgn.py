@@ -497,6 +497,23 @@ def test_a_checkpoint_with_impossible_options_is_named_before_torch_builds_it(tm
         load_network(tmp_path / "pressure.pt")
 
 
+@pytest.mark.parametrize(
+    ("change", "message"), [("nan", "are NaN or infinite"), ("std", "scale .*std has values <= 0")]
+)
+def test_a_checkpoint_with_nan_weights_or_zero_std_is_refused_when_loaded(tmp_path, change, message):
+    from lagfluid.models.fgn.networks import build_network
+
+    options = _model_options("pressure", "fgn")
+    payload = network_payload(build_network("pressure", options), "pressure", options, 0, {}, model="fgn")
+    name = next(k for k in payload["state_dict"] if k.endswith("std" if change == "std" else "weight"))
+    payload["state_dict"][name] = (
+        payload["state_dict"][name].clone().fill_(float("nan") if change == "nan" else 0)
+    )
+    save_checkpoint(tmp_path / "pressure.pt", payload)
+    with pytest.raises(CheckpointError, match=f"pressure.pt: .*{message}"):
+        read_checkpoint(tmp_path / "pressure.pt")
+
+
 def test_learning_rate_decays_from_start_to_end():
     assert learning_rate(0, 100, 1e-3, 6.25e-5) == pytest.approx(1e-3)
     assert learning_rate(99, 100, 1e-3, 6.25e-5) == pytest.approx(6.25e-5)

@@ -89,7 +89,26 @@ def read_checkpoint(
         raise CheckpointError(f"{path} holds a network of model {ckpt['model']!r}, expected {model!r}")
     if kind is not None and ckpt.get("kind") != kind:
         raise CheckpointError(f"{path} holds a {ckpt.get('kind')!r} network, expected {kind!r}")
+    _check_weights(path, ckpt.get("state_dict") or {})
     return ckpt
+
+
+def _check_weights(path: Path, state: dict[str, Any]) -> None:
+    """Refuse NaN or infinite weights and non-positive normalisation scales (``*std`` buffers).
+
+    Either would only show up later as a rollout that "blew up", with the advice to lower dt.
+    """
+    for name, tensor in state.items():
+        if not (isinstance(tensor, torch.Tensor) and tensor.is_floating_point()):
+            continue
+        if not torch.isfinite(tensor).all():
+            count = int((~torch.isfinite(tensor)).sum())
+            raise CheckpointError(f"{path}: {count} of {tensor.numel()} values of {name} are NaN or infinite")
+        if name.endswith("std") and (tensor <= 0).any():
+            raise CheckpointError(
+                f"{path}: normalisation scale {name} has values <= 0 ({tensor.min().item():.3g}): the "
+                "statistics are broken; retrain or re-export the network"
+            )
 
 
 def export_weights(
