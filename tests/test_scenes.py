@@ -434,6 +434,36 @@ def test_a_damaged_npz_grid_file_is_named_without_numpys_allow_pickle_hint(tmp_p
     assert "allow_pickle" not in str(err.value)
 
 
+def _tank_with_fluid_at(extra):
+    """A 10 x 10 l0 tank (2 wall + 2 dummy layers, walls from x = 0) with a 4^3 fluid block and ``extra``."""
+    l0 = 0.05
+    k = np.arange(-4, 14)
+    lattice = np.stack(np.meshgrid(k, k, np.arange(-4, 8), indexing="ij"), axis=-1).reshape(-1, 3)
+    depth = np.maximum(
+        np.maximum(-lattice[:, 0], lattice[:, 0] - 9), np.maximum(-lattice[:, 1], lattice[:, 1] - 9)
+    )
+    depth = np.maximum(depth, -lattice[:, 2])
+    boundary = lattice[depth > 0]
+    ptype = np.where(depth[depth > 0] <= 2, 2, 3)
+    fluid = np.stack(np.meshgrid(*[np.arange(3, 7)] * 3, indexing="ij"), axis=-1).reshape(-1, 3)
+    pos = np.concatenate([fluid, boundary, np.asarray(extra, dtype=float).reshape(-1, 3)]) * l0
+    types = np.concatenate(
+        [np.ones(len(fluid), int), ptype, np.ones(len(pos) - len(fluid) - len(boundary), int)]
+    )
+    return {"pos": pos, "vel": np.zeros_like(pos), "ptype": types}
+
+
+@pytest.mark.parametrize("offset", [(0.5, 0.0, 0.0), (0.5, 0.5, 0.0), (0.5, 0.5, 0.5)])
+def test_a_fluid_particle_inside_the_wall_layers_is_refused(tmp_path, offset):
+    build_scene("file", path=str(_npz(tmp_path, **_tank_with_fluid_at([]))))  # the tank itself is fine
+    inside = np.array([-2.0, 4.0, 3.0]) + np.array(offset)  # between the wall layers at x = -2 and -1
+    with pytest.raises(
+        SceneError,
+        match=r"fluid particle \d+ at \[-0.075\d*, .* number density 1\.[1-4]\d* n0 .*inside the wall",
+    ):
+        build_scene("file", path=str(_npz(tmp_path, **_tank_with_fluid_at([inside]))))
+
+
 def test_missing_and_malformed_files_name_the_path(tmp_path):
     missing = tmp_path / "nope.npz"
     with pytest.raises(SceneError, match=f"grid file not found: {missing}"):
