@@ -76,14 +76,14 @@ class Guard:
                 f"{outside.numel()} particles outside); check the walls of the scene or reduce dt "
                 f"(now {state.params.dt})"
             )
-        speed = state.vel[:nf].norm(dim=1)
-        i = int(speed.argmax())
-        courant = float(speed[i]) * state.params.dt / state.params.l0
+        i = int(state.vel[:nf].norm(dim=1).argmax())
+        speed = float(state.vel[i].double().norm())  # float64: |v| = 1e30 overflows float32 when squared
+        courant = speed * state.params.dt / state.params.l0
         if courant > self.max_courant:
+            start = " (the scene's initial velocity)" if step == 0 else ""
             raise RolloutError(
-                f"step {step}: Courant number {courant:.3f} at fluid particle {i} "
-                f"(|v| = {float(speed[i]):.3g} m/s) "
-                f"exceeds solver.guard.max_courant={self.max_courant}; reduce dt (now {state.params.dt}) "
+                f"step {step}: Courant number {courant:.3g} at fluid particle {i} "
+                f"(|v| = {speed:.3g} m/s){start} exceeds solver.guard.max_courant={self.max_courant}; reduce dt (now {state.params.dt}) "
                 f"or raise the limit"
             )
 
@@ -135,9 +135,14 @@ def rollout(
         raise RolloutError(f"steps must be >= 0, got {steps}")
     if write_every < 1:
         raise RolloutError(f"write_every must be >= 1, got {write_every}")
+    record: dict[str, Any] = {"step_seconds": [], "stage_seconds": {}, "info": {}}
+    try:  # the start too: a Courant number far past the limit (|v| = 1e30) fails inside the first step
+        guard.check(state)
+    except RolloutError as err:
+        err.record, err.state = record, state  # type: ignore[attr-defined]
+        raise
     if reset:
         simulator.reset(state, history)
-    record: dict[str, Any] = {"step_seconds": [], "stage_seconds": {}, "info": {}}
 
     bar = tqdm(total=steps, disable=not progress, desc=f"{simulator.name}", unit="step", dynamic_ncols=True)
     try:

@@ -4,6 +4,7 @@ import re
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 from hydra import compose, initialize_config_dir
 from hydra.errors import ConfigCompositionException
@@ -209,6 +210,28 @@ def test_guard_stop_keeps_what_was_written_and_says_why(tmp_path):
     saved = json.loads((tmp_path / "metrics.json").read_text())
     assert saved["complete"] is False and "Courant" in saved["stop_reason"] and saved["steps"] < 10
     assert (tmp_path / "preview.png").is_file()
+
+
+def test_an_initial_velocity_past_the_courant_limit_stops_at_step_0_naming_it(tmp_path):
+    from lagfluid.errors import RolloutError
+    from lagfluid.simulate import simulate
+
+    l0, k = 0.05, np.arange(-2, 6)
+    lattice = np.stack(np.meshgrid(k, k, k, indexing="ij"), axis=-1).reshape(-1, 3)
+    fluid = (lattice >= 0).all(axis=1) & (lattice <= 3).all(axis=1)
+    pos = np.concatenate([lattice[fluid], lattice[(lattice < 0).any(axis=1)]]) * l0
+    ptype = np.concatenate([np.ones(fluid.sum(), int), np.full(len(pos) - fluid.sum(), 2)])
+    vel = np.zeros_like(pos)
+    vel[3] = [1e30, 0.0, 0.0]  # finite in float32, inf once squared: used to fail inside the cell list
+    np.savez(tmp_path / "fast.npz", pos=pos, vel=vel, ptype=ptype)
+    cfg = _compose(
+        "scene=file", f"scene.path={tmp_path / 'fast.npz'}", "steps=2", f"out_dir={tmp_path / 'run'}"
+    )
+    with pytest.raises(
+        RolloutError, match=r"step 0: Courant number 4e\+28 at fluid particle 3 \(\|v\| = 1e\+30 m/s\)"
+    ):
+        simulate(cfg)
+    assert json.loads((tmp_path / "run" / "metrics.json").read_text())["complete"] is False
 
 
 def test_cli_guard_stop_is_one_clear_line(tmp_path):
