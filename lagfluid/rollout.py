@@ -83,7 +83,8 @@ class Guard:
             start = " (the scene's initial velocity)" if step == 0 else ""
             raise RolloutError(
                 f"step {step}: Courant number {courant:.3g} at fluid particle {i} "
-                f"(|v| = {speed:.3g} m/s){start} exceeds solver.guard.max_courant={self.max_courant}; reduce dt (now {state.params.dt}) "
+                f"(|v| = {speed:.3g} m/s){start} exceeds solver.guard.max_courant={self.max_courant}; "
+                f"reduce dt (now {state.params.dt}) "
                 f"or raise the limit"
             )
 
