@@ -30,7 +30,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from omegaconf import DictConfig, open_dict
+from omegaconf import DictConfig, OmegaConf, open_dict
 
 from lagfluid.data.datasets import load_metadata
 from lagfluid.data.layout import scene_path
@@ -53,6 +53,8 @@ class OnPolicy:
         ppe_weight: the pressure net's PPE term while fine-tuning (``train.ppe_weight``'s meaning).
         aggregate: round k fine-tunes on the union of rounds 1..k's data (DAgger's aggregation) instead
             of round k's alone.
+        jobs: scenes generated at once, each in its own one-thread process (one per core pays: the
+            solver's step scales poorly over threads).
     """
 
     rounds: int
@@ -61,6 +63,7 @@ class OnPolicy:
     lr_start: float
     ppe_weight: float
     aggregate: bool = False
+    jobs: int = 1
 
     @classmethod
     def from_config(cls, cfg: DictConfig, model_trainables: Sequence[str]) -> OnPolicy:
@@ -72,7 +75,8 @@ class OnPolicy:
         """
         section = cfg.train.get("onpolicy") or {}
         rounds, iterations = section.get("rounds", 0) or 0, section.get("iterations", 1)
-        for key, value, least in (("rounds", rounds, 0), ("iterations", iterations, 1)):
+        jobs = section.get("jobs", 1)
+        for key, value, least in (("rounds", rounds, 0), ("iterations", iterations, 1), ("jobs", jobs, 1)):
             if isinstance(value, bool) or not isinstance(value, int) or value < least:
                 raise ConfigError(f"train.onpolicy.{key} must be a whole number >= {least}, got {value!r}")
         names = tuple(str(n) for n in section.get("trainables") or ())
@@ -92,6 +96,7 @@ class OnPolicy:
             lr_start,
             float(section.get("ppe_weight") or 0.0),
             bool(section.get("aggregate", False)),
+            int(jobs),
         )
 
 
@@ -118,6 +123,24 @@ def _policy_data_config(cfg: DictConfig, policy_dir: Path | None, data_dir: Path
             gen.data.next_steps = 0  # the trajectory is the model's: no windows for trajectory learners
             gen.model.weights = str(policy_dir)
     return gen
+
+
+def _generate_round(gen: DictConfig, jobs: int) -> None:
+    """``task=generate`` of ``gen``: with ``jobs`` > 1 its scenes first, one one-thread process each."""
+    from lagfluid.generate import generate
+
+    if jobs > 1:
+        from joblib import Parallel, delayed, parallel_config
+
+        def one_scene(k: int) -> DictConfig:
+            plain = OmegaConf.to_container(gen, resolve=True)  # nothing left to resolve in the worker
+            plain["data"]["scene_index"], plain["threads"] = k, 1  # type: ignore[index]
+            return OmegaConf.create(plain)
+
+        # inner_max_num_threads: OMP_NUM_THREADS=1 in each worker, so no OpenMP thread spins beside it
+        with parallel_config(backend="loky", inner_max_num_threads=1):
+            Parallel(n_jobs=jobs)(delayed(generate)(one_scene(k)) for k in range(int(gen.num_scenes)))
+    generate(gen)  # what no job made (none, unless one failed), then metadata.json
 
 
 def check_same_scenes(cfg: DictConfig) -> None:
@@ -167,8 +190,6 @@ def run_rounds(
         ConfigError: a network of the model missing from ``out_dir``, or a command that does not
             regenerate the dataset's scenes (:func:`check_same_scenes`).
     """
-    from lagfluid.generate import generate
-
     model = str(cfg.model.name)
     owned = list(get_trainables(model, cfg))
     missing = [name for name in owned if not (out_dir / f"{name}.pt").is_file()]
@@ -188,7 +209,7 @@ def run_rounds(
             previous,
             data_dir,
         )
-        generate(_policy_data_config(cfg, previous, data_dir))
+        _generate_round(_policy_data_config(cfg, previous, data_dir), settings.jobs)
         tuned = copy.deepcopy(cfg)
         with open_dict(tuned):
             tuned.data.out_dir = str(data_dir)

@@ -2,11 +2,15 @@
 
 import hashlib
 import json
+import shutil
 
+import h5py
+import numpy as np
 import pytest
 import torch
 from hydra import compose, initialize_config_dir
 
+from lagfluid.data.layout import GROUP
 from lagfluid.errors import ConfigError
 from lagfluid.generate import generate
 from lagfluid.models.checkpoint import read_checkpoint
@@ -75,6 +79,25 @@ def test_aggregate_fine_tunes_round_k_on_the_data_of_rounds_1_to_k(tiny_data, tm
     assert [d["dir"] for d in identity["extra_data"]] == [round1]
 
 
+def test_scenes_generated_two_at_a_time_are_the_scenes_generated_one_after_another(tiny_data, tmp_path):
+    train(_train_cfg(tiny_data, tmp_path / "one_step"))  # the same policy networks for both, byte for byte
+    for jobs in (1, 2):
+        shutil.copytree(tmp_path / "one_step", tmp_path / f"jobs{jobs}")
+        cfg = _train_cfg(
+            tiny_data, tmp_path / f"jobs{jobs}", "train.onpolicy.rounds=1", f"train.onpolicy.jobs={jobs}"
+        )
+        train(cfg)
+    one, two = (tmp_path / f"jobs{j}" / "onpolicy" / "round1" / "data" for j in (1, 2))
+    assert json.loads((two / "metadata.json").read_text())["num_scenes"] == 3
+    for k in range(3):
+        with (
+            h5py.File(one / "scenes" / f"scene_{k:05d}.h5") as a,
+            h5py.File(two / "scenes" / f"scene_{k:05d}.h5") as b,
+        ):
+            assert a[GROUP].attrs["fingerprint"] == b[GROUP].attrs["fingerprint"]
+            np.testing.assert_array_equal(a[GROUP]["position"][:], b[GROUP]["position"][:])
+
+
 def test_a_rerun_resumes_and_regenerates_nothing(tiny_data, tmp_path):
     out = tmp_path / "run"
     train(_train_cfg(tiny_data, out, "train.onpolicy.rounds=1"))
@@ -97,6 +120,7 @@ def test_rounds_refuse_a_command_that_does_not_remake_the_datasets_scenes(tiny_d
         ("train.onpolicy.rounds=-1", r"train.onpolicy.rounds must be a whole number >= 0, got -1"),
         ("train.onpolicy.trainables=[gns]", r"train.onpolicy.trainables=\['gns'\]: model fgn trains"),
         ("train.onpolicy.iterations=0", r"train.onpolicy.iterations must be a whole number >= 1, got 0"),
+        ("train.onpolicy.jobs=0", r"train.onpolicy.jobs must be a whole number >= 1, got 0"),
     ],
 )
 def test_bad_round_settings_are_refused_naming_the_value(tiny_data, tmp_path, override, message):
