@@ -138,8 +138,11 @@ def _generate_round(gen: DictConfig, jobs: int) -> None:
             return OmegaConf.create(plain)
 
         # inner_max_num_threads: OMP_NUM_THREADS=1 in each worker, so no OpenMP thread spins beside it
+        log.info("%d scenes, %d at a time (joblib reports each on stderr)", int(gen.num_scenes), jobs)
         with parallel_config(backend="loky", inner_max_num_threads=1):
-            Parallel(n_jobs=jobs)(delayed(generate)(one_scene(k)) for k in range(int(gen.num_scenes)))
+            Parallel(n_jobs=jobs, verbose=10)(
+                delayed(generate)(one_scene(k)) for k in range(int(gen.num_scenes))
+            )
     generate(gen)  # what no job made (none, unless one failed), then metadata.json
 
 
