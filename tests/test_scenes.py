@@ -464,6 +464,22 @@ def test_a_fluid_particle_inside_the_wall_layers_is_refused(tmp_path, offset):
         build_scene("file", path=str(_npz(tmp_path, **_tank_with_fluid_at([inside]))))
 
 
+@pytest.mark.parametrize("offset", [1e3, 1e6])
+def test_a_grid_far_from_the_origin_is_refused_in_float32_and_runs_in_float64(tmp_path, offset):
+    arrays = _tank_with_fluid_at([])
+    arrays["pos"] = arrays["pos"] + offset
+    path = str(_npz(tmp_path, **arrays))
+    with pytest.raises(
+        SceneError, match=r"coordinates reach .* float32 resolves positions only to .*dtype=float64"
+    ):
+        build_scene("file", path=path)
+    state = build_scene("file", path=path, dtype=torch.float64)
+    assert state.pos.dtype == torch.float64 and torch.unique(state.pos, dim=0).shape[0] == state.pos.shape[0]
+    build_scene(
+        "file", path=str(_npz(tmp_path, **_tank_with_fluid_at([])))
+    )  # near the origin: float32 is fine
+
+
 def test_missing_and_malformed_files_name_the_path(tmp_path):
     missing = tmp_path / "nope.npz"
     with pytest.raises(SceneError, match=f"grid file not found: {missing}"):

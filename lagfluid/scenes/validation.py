@@ -202,6 +202,32 @@ def _check_overlaps(pos: np.ndarray, ptype: np.ndarray, l0: float, min_distance:
     )
 
 
+MAX_POSITION_SPACING = 1e-3
+"""Coarsest spacing of representable positions allowed, in l0 (the float spacing at the farthest coordinate).
+
+Kernel weights and distances are computed from position differences; far from the origin float32 rounds
+them (at 1e6 m its spacing is 0.06 m > l0: 352 of 640 particles of a test grid became duplicates).
+"""
+
+
+def _check_resolution(
+    pos: np.ndarray, bounds: np.ndarray | None, l0: float, dtype: torch.dtype, source: str
+) -> None:
+    """Refuse positions so far from the origin that ``dtype`` cannot resolve them to a fraction of l0."""
+    far = float(np.abs(pos).max())
+    if bounds is not None:
+        far = max(far, float(np.abs(bounds).max()))
+    spacing = far * torch.finfo(dtype).eps
+    if spacing > MAX_POSITION_SPACING * l0:
+        name = str(dtype).removeprefix("torch.")
+        raise SceneError(
+            f"{source}: coordinates reach {far:.3g} m from the origin, where {name} resolves positions only "
+            f"to {spacing:.2g} m ({spacing / l0:.2g} l0; allowed {MAX_POSITION_SPACING:g} l0): distances and "
+            "kernel weights would be rounded. Move the scene near the origin (subtract its lower corner) or "
+            "use dtype=float64"
+        )
+
+
 def check_choice(name: str, value: object, choices: Sequence[str]) -> str:
     """Return ``value`` if it is one of ``choices``, else raise :class:`SceneError` listing them."""
     if value not in choices:
@@ -232,6 +258,7 @@ def validated_state(
         source: what the particles came from, for the messages.
     """
     check_particles(pos, vel, ptype, params.l0, bounds, min_distance=min_distance, source=source)
+    _check_resolution(pos, bounds, params.l0, dtype, source)
     return ParticleState.from_arrays(
         torch.from_numpy(pos),
         torch.from_numpy(vel),
