@@ -21,3 +21,11 @@ class RolloutError(LagfluidError, RuntimeError):
 
 class MetricInputError(LagfluidError, ValueError):
     """Arrays given to a metric have the wrong shape, are empty or do not correspond."""
+
+
+class Terminated(KeyboardInterrupt):
+    """The process received SIGTERM (a timeout, SLURM, ``docker stop``): stopped like Ctrl-C.
+
+    A :class:`KeyboardInterrupt`, so every path that keeps a stopped run's outputs (``complete=false`` with
+    the reason, metrics, preview) handles it the same way.
+    """

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 import os
+import signal
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -17,7 +18,7 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig, open_dict
 
-from lagfluid.errors import LagfluidError
+from lagfluid.errors import LagfluidError, Terminated
 
 log = logging.getLogger("lagfluid")
 
@@ -149,8 +150,13 @@ def dispatch(cfg: DictConfig) -> None:
         raise LagfluidError(f"unknown task '{cfg.task}'; available: {', '.join(TASKS)}")
 
 
+def _raise_terminated(signum: int, frame: object) -> None:
+    raise Terminated(f"stopped by {signal.Signals(signum).name} (a timeout, the scheduler or docker stop)")
+
+
 @hydra.main(version_base="1.3", config_path="../conf", config_name="config")
 def _hydra_main(cfg: DictConfig) -> None:
+    signal.signal(signal.SIGTERM, _raise_terminated)  # stop like Ctrl-C: outputs kept, the reason written
     try:
         dispatch(cfg)
     except LagfluidError as err:
@@ -191,7 +197,11 @@ def main() -> None:
     if problem:
         sys.stderr.write(problem + "\n")
         sys.exit(1)
-    _hydra_main()
+    try:
+        _hydra_main()
+    except Terminated as err:
+        sys.stderr.write(f"lagfluid: {err}\n")
+        sys.exit(128 + signal.SIGTERM)
 
 
 if __name__ == "__main__":

@@ -234,6 +234,43 @@ def test_an_initial_velocity_past_the_courant_limit_stops_at_step_0_naming_it(tm
     assert json.loads((tmp_path / "run" / "metrics.json").read_text())["complete"] is False
 
 
+def test_sigterm_stops_a_rollout_like_ctrl_c_keeping_its_outputs_and_reason(tmp_path):
+    import signal
+    import time
+
+    out = tmp_path / "run"
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "lagfluid.run",
+            "experiment=debug",
+            "steps=100000",
+            f"out_dir={out}",
+            "threads=1",
+        ],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    deadline = time.monotonic() + 120
+    while not list(out.glob("rollout*part*")) and time.monotonic() < deadline:  # the rollout has begun
+        time.sleep(0.2)
+    time.sleep(1.0)
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 128 + signal.SIGTERM
+    assert (
+        err.strip().splitlines()[-1]
+        == "lagfluid: stopped by SIGTERM (a timeout, the scheduler or docker stop)"
+    )
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert (
+        metrics["complete"] is False and "SIGTERM" in metrics["stop_reason"] and metrics["steps"] < 100000
+    )
+    assert (out / "preview.png").is_file() and (out / "rollout.h5").is_file()
+
+
 def test_cli_guard_stop_is_one_clear_line(tmp_path):
     out = subprocess.run(
         [
