@@ -21,8 +21,10 @@ statistics, options, optimizer, RNG, step; :mod:`lagfluid.models.checkpoint`) an
 
 **Resume.** A checkpoint is written every ``train.checkpoint_every`` iterations and at the end (atomic
 rename). A rerun with the same command continues from it (weights, optimizer, RNG state and CSV rows after
-the checkpoint dropped); a finished trainable is skipped; a checkpoint of other network options, data or
-settings is an error, never silently mixed. A non-finite loss stops the run naming the iteration.
+the checkpoint dropped) exactly as the uninterrupted run would have (the batch order and each item's random
+draws are functions of the seed and the iteration: :class:`EpochBatches`, :class:`KeyedItems`); a
+finished trainable is skipped; a checkpoint of other network options, data or settings is an error, never
+silently mixed. A non-finite loss stops the run naming the iteration.
 
 **On-policy rounds.** ``train.onpolicy.rounds=R`` (with ``stage=all``, or a stage in
 ``train.onpolicy.trainables``) then fine-tunes those networks on R rounds of the model's own rollouts
@@ -44,7 +46,7 @@ import logging
 import math
 import os
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -85,6 +87,54 @@ def learning_rate(
         return lr_start * gamma ** sum(iteration >= int(m) for m in milestones)
     frac = iteration / max(iterations - 1, 1)
     return lr_start * math.exp(frac * math.log(lr_end / lr_start))
+
+
+class EpochBatches(torch.utils.data.Sampler[list[tuple[int, int]]]):
+    """Endless mini-batches of ``(index, epoch)`` keys, from iteration ``start`` on.
+
+    Epoch ``e`` is a permutation of the ``n`` items drawn from ``(seed, e)`` alone, cut into batches of
+    ``batch_size`` (the last one smaller); iteration ``k`` is batch ``k mod B`` of epoch ``k div B``. So the
+    order is a function of the iteration, and a run resumed from a checkpoint at iteration ``k`` sees the
+    batches the uninterrupted run saw (the shuffle used to be reseeded with ``seed + k``, a different order).
+    """
+
+    def __init__(self, n: int, batch_size: int, seed: int, start: int = 0) -> None:
+        self.n, self.batch_size, self.seed, self.start = n, batch_size, seed, start
+        self.per_epoch = -(-n // batch_size)
+
+    def __iter__(self) -> Iterator[list[tuple[int, int]]]:
+        step, epoch, order = self.start, -1, torch.empty(0, dtype=torch.long)
+        while True:
+            e, b = divmod(step, self.per_epoch)
+            if e != epoch:
+                epoch = e
+                order = torch.randperm(
+                    self.n, generator=torch.Generator().manual_seed(self.seed * 1_000_003 + e)
+                )
+            yield [(int(i), epoch) for i in order[b * self.batch_size : (b + 1) * self.batch_size]]
+            step += 1
+
+
+class KeyedItems(torch.utils.data.Dataset):
+    """``items[index]`` for an ``(index, epoch)`` key of :class:`EpochBatches`.
+
+    An item set that draws random numbers per read (FGN's advection samples: fresh g and nu) exposes
+    ``reseed(key)``; it is called with ``epoch * len + index`` first, so each draw is a function of the
+    key and a resumed run draws what the uninterrupted one did.
+    """
+
+    def __init__(self, items: Any) -> None:
+        self.items = items
+        self.reseed = getattr(items, "reseed", None)
+
+    def __len__(self) -> int:
+        return len(self.items)
+
+    def __getitem__(self, key: tuple[int, int]) -> Any:
+        index, epoch = key
+        if self.reseed is not None:
+            self.reseed(epoch * len(self.items) + index)
+        return self.items[index]
 
 
 def _fingerprint(obj: Any) -> str:
@@ -235,11 +285,24 @@ def train_one(cfg: DictConfig, trainable: Trainable, out_dir: Path) -> dict[str,
         train_items = ConcatDataset([train_items, *(trainable.datasets(d)[0] for d in extra_dirs)])
     if len(train_items) == 0:
         raise LagfluidError(f"no {kind} training samples in {data_dir}")
-    generator = torch.Generator().manual_seed(int(cfg.seed) + start_step)
+    # the batch order is a function of (seed, iteration) alone: a resumed run continues it exactly
+    # own generators: a DataLoader iterator draws its base seed from the global RNG otherwise, which the
+    # trainables' noise and pushforward draws (restored from the checkpoint) must not share
     loader = DataLoader(
-        train_items, batch_size=batch_size, shuffle=True, generator=generator, drop_last=False
+        KeyedItems(train_items),
+        batch_sampler=EpochBatches(len(train_items), batch_size, int(cfg.seed), start=start_step),
+        generator=torch.Generator().manual_seed(int(cfg.seed)),
     )
-    valid_loader = DataLoader(valid_items, batch_size=batch_size, shuffle=False) if len(valid_items) else None
+    valid_loader = (
+        DataLoader(
+            valid_items,
+            batch_size=batch_size,
+            shuffle=False,
+            generator=torch.Generator().manual_seed(int(cfg.seed)),
+        )
+        if len(valid_items)
+        else None
+    )
 
     if stats is None:
         n_stat = min(len(train_items), int(tcfg.stat_samples))

@@ -58,3 +58,45 @@ def untrained_weights_of(tmp_path_factory):
 def untrained_weights(untrained_weights_of) -> Path:
     """Checkpoints of freshly initialised FGN networks (see :func:`untrained_weights_of`)."""
     return untrained_weights_of("fgn")
+
+
+@pytest.fixture
+def assert_exact_resume(monkeypatch, tmp_path):
+    """``check(config_for, name)``: a training stopped after its checkpoint resumes to the very same weights.
+
+    ``config_for(out_dir)`` is a ``task=train`` config of one trainable ``name`` with 6 iterations and a
+    checkpoint every 2. The run is stopped inside iteration 5 (after the checkpoint at 4, as a kill -9 would
+    leave it), resumed, and compared with an uninterrupted run: every weight and every logged loss equal.
+    """
+    import csv
+
+    from lagfluid.models.checkpoint import read_checkpoint
+    from lagfluid.train import train
+
+    def check(config_for, name: str) -> None:
+        train(config_for(tmp_path / "straight"))
+        original, calls = torch.optim.Adam.step, {"n": 0}
+
+        def killed_in_iteration_5(self, *args, **kwargs):
+            calls["n"] += 1
+            if calls["n"] == 5:
+                raise KeyboardInterrupt
+            return original(self, *args, **kwargs)
+
+        monkeypatch.setattr(torch.optim.Adam, "step", killed_in_iteration_5)
+        with pytest.raises(KeyboardInterrupt):
+            train(config_for(tmp_path / "resumed"))
+        monkeypatch.setattr(torch.optim.Adam, "step", original)
+        assert read_checkpoint(tmp_path / "resumed" / f"{name}.pt")["step"] == 4
+        train(config_for(tmp_path / "resumed"))
+        runs = [read_checkpoint(tmp_path / run / f"{name}.pt") for run in ("straight", "resumed")]
+        assert runs[0]["step"] == runs[1]["step"] == 6
+        for key, value in runs[0]["state_dict"].items():
+            assert torch.equal(value, runs[1]["state_dict"][key]), key
+        losses = [
+            [row["train_loss"] for row in csv.DictReader((tmp_path / run / f"{name}_loss.csv").open())]
+            for run in ("straight", "resumed")
+        ]
+        assert losses[0] == losses[1] and len(losses[0]) == 6
+
+    return check

@@ -521,3 +521,14 @@ def test_tiny_training_lowers_the_loss(step_data, tmp_path):
         "cconv",
     )
     assert sim.dt == 0.002 and sim.parameters == 692_902
+
+
+def test_a_resumed_training_ends_with_the_uninterrupted_runs_weights(step_data, assert_exact_resume):
+    def config_for(out):
+        return _compose(
+            "task=train", "model=cconv", "train=cconv_cpu", "data=tiny", "data.next_steps=2",
+            f"data.out_dir={step_data}", f"out_dir={out}", "progress=false", "train.iterations.cconv=6",
+            "train.checkpoint_every=2", "train.log_every=1", "train.valid_every=3", "train.lr_milestones=[3]",
+        )  # fmt: skip
+
+    assert_exact_resume(config_for, "cconv")

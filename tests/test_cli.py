@@ -265,9 +265,7 @@ def test_sigterm_stops_a_rollout_like_ctrl_c_keeping_its_outputs_and_reason(tmp_
         == "lagfluid: stopped by SIGTERM (a timeout, the scheduler or docker stop)"
     )
     metrics = json.loads((out / "metrics.json").read_text())
-    assert (
-        metrics["complete"] is False and "SIGTERM" in metrics["stop_reason"] and metrics["steps"] < 100000
-    )
+    assert metrics["complete"] is False and "SIGTERM" in metrics["stop_reason"] and metrics["steps"] < 100000
     assert (out / "preview.png").is_file() and (out / "rollout.h5").is_file()
 
 

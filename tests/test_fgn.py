@@ -470,6 +470,16 @@ def test_interrupted_training_resumes_from_its_checkpoint(tiny_data, tmp_path, m
         train(_train_cfg(tiny_data, tmp_path, "stage=collision", "model.collision.width=32", iterations=40))
 
 
+@pytest.mark.parametrize("stage", ["advection", "collision", "pressure"])
+def test_a_resumed_training_ends_with_the_uninterrupted_runs_weights(tiny_data, stage, assert_exact_resume):
+    assert_exact_resume(
+        lambda out: _train_cfg(
+            tiny_data, out, f"stage={stage}", "train.checkpoint_every=2", "train.log_every=1", iterations=6
+        ),
+        stage,
+    )
+
+
 def test_bad_checkpoints_and_stages_are_clear_errors(tmp_path, tiny_data):
     (tmp_path / "advection.pt").write_bytes(b"not a checkpoint")
     with pytest.raises(CheckpointError, match="cannot read checkpoint"):

@@ -361,6 +361,18 @@ def test_tiny_training_lowers_the_loss(tiny_data, tmp_path):
     assert rows["valid_loss"][-1] < 0.7 * rows["valid_loss"][0]
 
 
+def test_a_resumed_training_ends_with_the_uninterrupted_runs_weights(tiny_data, assert_exact_resume):
+    def config_for(out):  # noise and pushforward both inside the 6 iterations
+        return _compose(
+            "task=train", "model=gns", "train=gns_cpu", f"data.out_dir={tiny_data}", f"out_dir={out}",
+            *[f"model.gns.{k}={v}" for k, v in SMALL.items()], "train.iterations={gns: 6}",
+            "train.checkpoint_every=2", "train.log_every=1", "train.valid_every=3",
+            "train.pushforward.start=3", "progress=false", "threads=1",
+        )  # fmt: skip
+
+    assert_exact_resume(config_for, "gns")
+
+
 # ------------------------------------------------------------------------------------------ plugin path
 def test_the_plugin_is_found_by_entry_points_and_composes():
     for group in ("lagfluid.simulators", "lagfluid.trainables", "lagfluid.configs"):

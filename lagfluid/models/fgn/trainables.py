@@ -139,6 +139,11 @@ class ResampledMaterials:
             self._laplacians[idx] = lap
         return lap
 
+    def reseed(self, key: int) -> None:
+        """Make the next item's draw a function of ``key`` (the trainer's ``epoch * len + index``)."""
+        if not self.fixed:
+            self.generator.manual_seed(self.seed * 1_000_003 + 500_009 + key)
+
     def __getitem__(self, idx: int) -> Data:
         item = self.dataset[idx]
         if self.fixed:
