@@ -3,6 +3,7 @@
 import json
 import math
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -105,6 +106,25 @@ def test_reference_is_reused_when_the_config_matches(cli_run, tmp_path):
     assert metrics["reference"]["reused"] is True and metrics["reference"]["path"] == str(path)
     assert path.stat().st_mtime_ns == before
     assert metrics["frames"]["position_mse_m2"] == [0.0] * (STEPS + 1)
+
+
+def test_a_cached_reference_with_a_damaged_chunk_is_recomputed_not_a_raw_h5py_error(cli_run, tmp_path):
+    _, _, first = cli_run
+    cached = Path(first["reference"]["path"])
+    cfg = _compose("model=mps", f"out_dir={tmp_path / 'out'}", f"evaluate.reference_dir={tmp_path / 'ref'}")
+    copy = tmp_path / "ref" / cached.parent.name / "rollout.h5"
+    copy.parent.mkdir(parents=True)
+    shutil.copy(cached, copy)
+    with h5py.File(copy, "r") as f:  # the last frame's chunk of the positions
+        chunk = f["00000"]["position"].id.get_chunk_info(STEPS)
+    with copy.open("r+b") as f:
+        f.seek(chunk.byte_offset + chunk.size // 2)
+        f.write(b"\x00\xff" * 8)
+    key, frames = reference_key(cfg), expected_frames(STEPS, 1)
+    assert "unreadable dataset position" in cached_reference_problem(copy, key, frames)
+    metrics = evaluate(cfg)
+    assert metrics["reference"]["reused"] is False and metrics["reference"]["path"] == str(copy)
+    assert cached_reference_problem(copy, key, frames) is None  # recomputed in place
 
 
 def test_reference_is_recomputed_for_another_dt(cli_run, tmp_path):

@@ -80,7 +80,8 @@ class TrajectoryWriter:
         for key, value in attrs.items():
             self.group.attrs[key] = _attr_value(value)
         self.group.attrs["complete"] = False
-        compress = {"compression": "gzip", "compression_opts": 4, "shuffle": True}
+        # fletcher32: a per-chunk checksum, so a damaged chunk is an error on read, never silent numbers
+        compress = {"compression": "gzip", "compression_opts": 4, "shuffle": True, "fletcher32": True}
         # One frame per chunk: appends touch exactly one chunk, and readers can load any frame alone.
         nf = max(int(n_fluid), 1)
         self.time = self.group.create_dataset("time", (0,), maxshape=(None,), dtype="f8", chunks=(1024,))

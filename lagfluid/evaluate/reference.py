@@ -91,6 +91,12 @@ def cached_reference_problem(path: Path, key: dict[str, Any], frames: int) -> st
             return f"{path} was made with another configuration"
         if g["time"].shape[0] != frames or g["position"].shape[0] != frames:
             return f"{path} holds {g['time'].shape[0]} frames, {frames} expected"
+        for name, item in g.items():  # read every chunk: a damaged one must not fail every later run
+            if isinstance(item, h5py.Dataset):
+                try:
+                    item[...]
+                except (OSError, RuntimeError) as err:
+                    return f"{path} has an unreadable dataset {name} ({err})"
     return None
 
 
