@@ -22,7 +22,7 @@ from lagfluid.errors import LagfluidError, Terminated
 
 log = logging.getLogger("lagfluid")
 
-CONF_DIR = Path(__file__).resolve().parent.parent / "conf"
+CONF_DIR = Path(__file__).resolve().parent / "conf"  # in the package: a wheel carries it (conf/ links here)
 TASKS = ("simulate", "generate", "train", "evaluate")
 
 
@@ -154,7 +154,7 @@ def _raise_terminated(signum: int, frame: object) -> None:
     raise Terminated(f"stopped by {signal.Signals(signum).name} (a timeout, the scheduler or docker stop)")
 
 
-@hydra.main(version_base="1.3", config_path="../conf", config_name="config")
+@hydra.main(version_base="1.3", config_path="conf", config_name="config")
 def _hydra_main(cfg: DictConfig) -> None:
     signal.signal(signal.SIGTERM, _raise_terminated)  # stop like Ctrl-C: outputs kept, the reason written
     try:

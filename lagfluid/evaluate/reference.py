@@ -25,7 +25,7 @@ from lagfluid.simulate import simulate
 
 log = logging.getLogger(__name__)
 
-CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
+CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
 
 
 def _file_digest(path: Path) -> str:
