@@ -480,6 +480,24 @@ def test_a_grid_far_from_the_origin_is_refused_in_float32_and_runs_in_float64(tm
     )  # near the origin: float32 is fine
 
 
+def test_a_scene_too_large_for_memory_is_refused_with_the_estimate_before_it_is_built(monkeypatch):
+    from lagfluid.scenes import validation
+
+    with pytest.raises(
+        SceneError, match=r"scene 'dam': building it needs ~\d+ GiB, but .* GiB of memory are available"
+    ):
+        build_scene("dam", tank_size=[3000, 3000], wall_height=1000)  # 9e9 lattice points: never allocated
+    monkeypatch.setattr(validation, "available_memory", lambda: 2**30)  # 1 GiB left
+    build_scene("dam")  # 31k particles: ~0.25 GiB
+    big = {"fluid_size": [100, 100, 100], "tank_size": [120, 120], "wall_height": 110}
+    with pytest.raises(
+        SceneError, match=r"a rollout of its ~1,\d{3},\d{3} particles needs ~\d+\.?\d* GiB, but 1 GiB"
+    ):
+        build_scene("dam", **big)
+    monkeypatch.setattr(validation, "available_memory", lambda: None)  # unknown: never refused for it
+    assert validation.check_memory(1e18, "x", "scene") is None
+
+
 def test_missing_and_malformed_files_name_the_path(tmp_path):
     missing = tmp_path / "nope.npz"
     with pytest.raises(SceneError, match=f"grid file not found: {missing}"):

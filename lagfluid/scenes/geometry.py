@@ -38,8 +38,10 @@ import torch
 
 from lagfluid.scenes.validation import (
     MIN_DISTANCE,
+    RUN_BYTES_PER_PARTICLE,
     as_vector,
     check_choice,
+    check_memory,
     check_positive_int,
     validated_state,
 )
@@ -62,6 +64,10 @@ log = logging.getLogger(__name__)
 # Depths of lattice points are exact integers for lattice-aligned faces and square roots for curved
 # ones; this tolerance keeps a point that lies on a surface (depth 0 up to rounding) in the solid.
 _EPS = 1e-6
+
+# Bytes per lattice point while a scene is built: a float64 depth, two masks and int64 coordinates of the
+# box the boundary layers are cut from, and the fluid's coordinates, velocities and validation (generous).
+_BUILD_BYTES_PER_POINT = 64
 
 
 def lattice_block(lower: tuple[int, int, int], size: tuple[int, int, int]) -> np.ndarray:
@@ -436,6 +442,28 @@ class Scene:
             raise SceneError(f"scene '{self.name}': no fluid particle is left outside the obstacles")
         return xyz, v
 
+    def boundary_points(self) -> tuple[int, int]:
+        """Lattice points of the box :meth:`boundary_sites` evaluates, and an upper bound of its particles.
+
+        The bound is the box minus the tank's inside (a tank's layers), or the whole box for obstacles
+        alone; computed without making any array.
+        """
+        if self.container is not None:
+            lo, hi = self.container.extent(self.layers)
+            inner = np.asarray(self.container.extent(0)[1], dtype=np.float64) - 1  # the fluid's room
+            room = float(np.prod(np.maximum(inner, 0)))
+        elif self.obstacles:
+            boxes = [s.bbox() for s in self.obstacles]
+            lo, hi, room = (
+                np.floor(np.min([b[0] for b in boxes], axis=0)),
+                np.ceil(np.max([b[1] for b in boxes], axis=0)),
+                0.0,
+            )
+        else:
+            return 0, 0
+        box = float(np.prod(np.asarray(hi, dtype=np.float64) - np.asarray(lo, dtype=np.float64) + 1))
+        return int(box), int(max(box - room, 0.0))
+
     def boundary_sites(self) -> tuple[np.ndarray, np.ndarray]:
         """Lattice points and types of the wall and dummy particles of the tank and obstacles.
 
@@ -508,6 +536,13 @@ class Scene:
         t0 = time.perf_counter()
         params = params or SceneParams()
         l0 = params.l0
+        source = f"scene '{self.name}'"
+        # estimated before any array is made: a too-large scene is refused, not killed by the OS later
+        fluid_points = sum(int(np.prod(block.size)) for block in self.fluid)
+        box, shell = self.boundary_points()
+        check_memory(_BUILD_BYTES_PER_POINT * (fluid_points + box), "building it", source)
+        n = fluid_points + shell
+        check_memory(RUN_BYTES_PER_PARTICLE * n, f"a rollout of its ~{n:,} particles", source)
         fluid_xyz, fluid_vel = self.fluid_sites()
         bnd_xyz, bnd_type = self.boundary_sites()
         pos = np.concatenate([fluid_xyz, bnd_xyz]).astype(np.float64) * l0
