@@ -63,6 +63,7 @@ from lagfluid.data.datasets import load_metadata
 from lagfluid.errors import ConfigError, LagfluidError
 from lagfluid.models.checkpoint import export_weights, network_payload, read_checkpoint, save_checkpoint
 from lagfluid.models.trainable import Trainable
+from lagfluid.models.training_range import UNITS, range_from_checkpoint_meta, training_range
 from lagfluid.onpolicy_rounds import OnPolicy, check_same_scenes, run_rounds
 from lagfluid.registry import get_trainables
 
@@ -242,6 +243,8 @@ def train_one(cfg: DictConfig, trainable: Trainable, out_dir: Path) -> dict[str,
     if init_from:  # only then, likewise
         identity["init_from"] = str(Path(str(init_from)).resolve())
     fingerprint = _fingerprint(identity)
+    quantities = getattr(trainable, "range_quantities", tuple(UNITS))
+    trained_range = training_range([data_dir, *extra_dirs], identity, quantities)  # derived: no fingerprint
     ckpt_path, csv_path = out_dir / f"{kind}.pt", out_dir / f"{kind}_loss.csv"
 
     torch.manual_seed(int(cfg.seed))
@@ -333,6 +336,7 @@ def train_one(cfg: DictConfig, trainable: Trainable, out_dir: Path) -> dict[str,
             "profile": str(tcfg.name),
             "version": lagfluid.__version__,
             "data_dir": str(data_dir),
+            "range": trained_range,
         }
         payload = network_payload(net, kind, options, step, meta, model=trainable.model)
         payload.update(optimizer=optimizer.state_dict(), rng=torch.get_rng_state())
@@ -438,6 +442,11 @@ def train(cfg: DictConfig) -> list[dict[str, Any]]:
             )
         dest.mkdir(exist_ok=True)
         for name, source in sources.items():  # only this run's trainables: out_dir may hold others
-            written = export_weights(source, export_to, kinds=[name])
+            meta = read_checkpoint(Path(source) / f"{name}.pt").get("meta") or {}
+            quantities = getattr(trainables[name], "range_quantities", tuple(UNITS))
+            trained = range_from_checkpoint_meta({**meta, "range": None}, quantities)
+            written = export_weights(
+                source, export_to, kinds=[name], ranges={name: trained} if trained else None
+            )
             log.info("%s: exported to %s", name, written[0])
     return summaries

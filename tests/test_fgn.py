@@ -524,6 +524,41 @@ def test_a_checkpoint_with_nan_weights_or_zero_std_is_refused_when_loaded(tmp_pa
         read_checkpoint(tmp_path / "pressure.pt")
 
 
+def test_checkpoints_record_their_training_range_and_a_rollout_outside_it_warns_once(
+    trained, tmp_path, caplog
+):
+    from lagfluid.models.checkpoint import export_weights
+
+    ranges = {
+        k: read_checkpoint(trained / f"{k}.pt")["meta"]["range"]
+        for k in ("advection", "collision", "pressure")
+    }
+    assert ranges["pressure"] == {"dt": [0.002, 0.002], "l0": [0.05, 0.05], "gravity": [9.8065, 9.8065],
+                                  "viscosity": [1e-06, 1e-06]}  # fmt: skip
+    assert ranges["advection"]["viscosity"] == [1e-06, 0.1] and ranges["advection"]["gravity"] == [1.0, 100.0]
+    assert set(ranges["collision"]) == {"dt", "l0"}  # collision-only systems: no gravity, no viscosity
+    export_weights(trained, tmp_path, kinds=["pressure"])
+    assert read_checkpoint(tmp_path / "pressure.pt")["meta"]["range"] == ranges["pressure"]
+
+    def warnings(*overrides):
+        caplog.clear()
+        sim = build_simulator(
+            _compose("model=fgn", f"model.weights={trained}", "scene=dam_small", *overrides)
+        )
+        state = build_initial_state(_compose("scene=dam_small", *overrides))
+        sim.reset(state)
+        sim.reset(state)  # once per simulator, not per reset
+        return [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+
+    assert warnings() == []
+    (line,) = warnings("scene.params.viscosity=0.1")  # inside the advection net's range, not the pressure's
+    assert line == (
+        "model fgn: the pressure network was trained on viscosity 1e-06 m^2/s; this scene has 0.1: expect "
+        "larger errors than its model card states"
+    )
+    assert len(warnings("dt=0.004")) == 3  # every network saw 2 ms only
+
+
 def test_learning_rate_decays_from_start_to_end():
     assert learning_rate(0, 100, 1e-3, 6.25e-5) == pytest.approx(1e-3)
     assert learning_rate(99, 100, 1e-3, 6.25e-5) == pytest.approx(6.25e-5)

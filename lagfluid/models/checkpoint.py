@@ -29,6 +29,7 @@ import torch
 from torch import nn
 
 from lagfluid.errors import LagfluidError
+from lagfluid.models.training_range import range_from_checkpoint_meta
 
 CHECKPOINT_FORMAT = "lagfluid-network"
 LEGACY_MODEL = "fgn"
@@ -112,7 +113,10 @@ def _check_weights(path: Path, state: dict[str, Any]) -> None:
 
 
 def export_weights(
-    run_dir: str | os.PathLike, dest_dir: str | os.PathLike, kinds: Sequence[str] | None = None
+    run_dir: str | os.PathLike,
+    dest_dir: str | os.PathLike,
+    kinds: Sequence[str] | None = None,
+    ranges: dict[str, dict[str, list[float]]] | None = None,
 ) -> list[Path]:
     """Copy a training run's network checkpoints without optimizer and RNG state (shipping size).
 
@@ -122,6 +126,8 @@ def export_weights(
         run_dir: a ``task=train`` out_dir.
         dest_dir: the folder to write ``<kind>.pt`` into (it must exist).
         kinds: the checkpoints to copy by name (``advection``, ``gns``...); None = every ``*.pt``.
+        ranges: per kind, the training range to record (:mod:`lagfluid.models.training_range`); else the
+            checkpoint's own, or one rebuilt from its training data when still there.
 
     Raises:
         CheckpointError: ``run_dir`` holds no checkpoint (or not one of ``kinds``), or one that is unreadable.
@@ -138,7 +144,12 @@ def export_weights(
     written = []
     for path in paths:
         ckpt = read_checkpoint(path)
-        save_checkpoint(Path(dest_dir) / path.name, {k: ckpt[k] for k in _EXPORTED})
+        meta = dict(ckpt.get("meta") or {})
+        trained = (ranges or {}).get(str(ckpt.get("kind"))) or range_from_checkpoint_meta(meta)
+        # shipped weights carry it: their training data stays behind
+        if trained is not None:
+            meta["range"] = trained
+        save_checkpoint(Path(dest_dir) / path.name, {**{k: ckpt[k] for k in _EXPORTED}, "meta": meta})
         written.append(Path(dest_dir) / path.name)
     return written
 

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import json
 import logging
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -27,9 +28,10 @@ from lagfluid.models.checkpoint import CheckpointError
 from lagfluid.models.fgn.networks import KINDS, load_network, owned_stages, parameter_count
 from lagfluid.models.fgn.original import load_original_network
 from lagfluid.models.fgn.stages import LearnedAdvection, LearnedCollision, LearnedPressure
+from lagfluid.models.training_range import range_from_checkpoint_meta, range_warnings
 from lagfluid.physics.mps import CollisionRule, ExactAdvection, ExactPressure
 from lagfluid.physics.stages import SolverSettings, SplitStepSimulator
-from lagfluid.state import parse_dtype
+from lagfluid.state import ParticleState, parse_dtype
 
 log = logging.getLogger(__name__)
 
@@ -47,6 +49,15 @@ class LearnedSplitStep(SplitStepSimulator):
     def __init__(self, *args: Any, networks: dict[str, Any], **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         self.networks = networks
+        self._warned: set[str] = set()
+
+    def reset(self, state: ParticleState, history: Sequence[ParticleState] = ()) -> None:
+        """As the split-step scheme's; first one warning per parameter outside a network's training range."""
+        for line in range_warnings(self.name, self.networks, state.params):
+            if line not in self._warned:
+                self._warned.add(line)
+                log.warning("%s", line)
+        super().reset(state, history)
 
     @property
     def parameters(self) -> int:
@@ -98,7 +109,9 @@ def load_stage_network(kind: str, model_cfg: Any) -> tuple[torch.nn.Module, dict
         )
     if differs:  # the checkpoint's own options win: they are what the weights were trained with
         log.info("%s network from %s uses its own options where the config differs: %s", kind, path, differs)
-    return net, {"source": str(path), "format": "lagfluid", "step": ckpt["step"]}
+    source = {"source": str(path), "format": "lagfluid", "step": ckpt["step"]}
+    trained = range_from_checkpoint_meta(ckpt.get("meta") or {})
+    return net, {**source, "range": trained} if trained else source
 
 
 def build_split_step(cfg: Any) -> LearnedSplitStep:

@@ -325,6 +325,8 @@ class CollisionStage(FGNStage):
 
     samples = CollisionSamples
 
+    range_quantities = ("dt", "l0")  # collision-only systems: no gravity, no viscosity
+
     def fit_statistics(self, net: nn.Module, items: Sequence[Data]) -> dict[str, Any]:
         """RMS relative velocity of the pairs and RMS velocity change of the moved particles."""
         # scales only: centring a velocity change would bias particles with no contact
