@@ -401,3 +401,20 @@ def test_trajectory_windows_carry_the_domain_bounds(tiny_data):
     with h5py.File(scene, "r") as f:
         expected = torch.from_numpy(f["00000"].attrs["bounds"]).float()
     assert torch.equal(item.bounds, expected.unsqueeze(0))
+
+
+@pytest.mark.skipif(not (SHIPPED / "gns.pt").is_file(), reason="no shipped GNS weights")
+def test_the_shipped_weights_warn_once_outside_their_training_range(caplog):
+    from lagfluid.config import build_simulator
+    from lagfluid.models.checkpoint import read_checkpoint
+
+    assert read_checkpoint(SHIPPED / "gns.pt")["meta"]["range"]["viscosity"] == [1e-06, 1e-06]
+    overrides = ("model=gns", "scene=dam_small", "scene.params.viscosity=0.1")
+    sim, state = build_simulator(_compose(*overrides)), build_initial_state(_compose(*overrides))
+    sim.reset(state)
+    sim.reset(state)
+    said = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert said == [
+        "model gns: the gns network was trained on viscosity 1e-06 m^2/s; this scene has 0.1: expect larger "
+        "errors than its model card states"
+    ]  # dt is the network's own frame spacing: never warned about

@@ -23,6 +23,7 @@ from torch import Tensor
 
 from lagfluid.errors import ConfigError, RolloutError
 from lagfluid.models.checkpoint import CheckpointError, read_checkpoint
+from lagfluid.models.training_range import RangeWarner, checkpoint_range
 from lagfluid.state import ParticleState
 
 from .boundary import surface_points
@@ -92,6 +93,8 @@ class CConvSimulator:
         self._timings: dict[str, float] = {}
         self._box: Tensor | None = None  # (S, 3) surface points, network axes
         self._box_normals: Tensor | None = None
+        trained = checkpoint_range(weights) if weights.endswith(".pt") and Path(weights).is_file() else None
+        self._ranges = RangeWarner(name, {name: {"range": trained}})
 
     @property
     def parameters(self) -> int:
@@ -109,6 +112,7 @@ class CConvSimulator:
         Raises:
             RolloutError: a scene at another particle spacing than the network's.
         """
+        self._ranges.check(state.params)
         spacing = 2 * self.net.particle_radius
         if abs(state.params.l0 - spacing) > 1e-6 * spacing:
             raise RolloutError(

@@ -28,6 +28,7 @@ from lagfluid.integrate import semi_implicit_euler
 from lagfluid.models.checkpoint import read_checkpoint
 from lagfluid.models.mps_simulator import build_mps
 from lagfluid.models.simulator import Simulator
+from lagfluid.models.training_range import RangeWarner, checkpoint_range
 from lagfluid.state import ParticleState
 
 from .graph import build_graph, fluid_acceleration
@@ -62,6 +63,11 @@ class GNSSimulator:
             raise RolloutError("the GNS weights hold no frame spacing (frame_dt); were they trained?")
         self.warm_start = warm_start
         self.weights = weights
+        # the frame spacing is the network's own (scenes are stepped by it): dt is not checked
+        trained = (
+            checkpoint_range(weights, ("l0", "gravity", "viscosity")) if Path(weights).is_file() else None
+        )
+        self._ranges = RangeWarner(NAME, {NAME: {"range": trained}})
         self.last_info: dict[str, float] = {}
         self._timings: dict[str, float] = {}
         self._velocities: torch.Tensor | None = None  # (Nf, H, 3) the last H velocities, oldest first
@@ -85,6 +91,7 @@ class GNSSimulator:
         Raises:
             RolloutError: too short a history with no warm start, or a history of other particles.
         """
+        self._ranges.check(state.params)
         nf, h = state.n_fluid, self.history_length
         self._next_step = state.step
         if len(history) >= h:

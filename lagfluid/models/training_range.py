@@ -10,6 +10,7 @@ records those ranges); a simulator built from such checkpoints logs one warning 
 from __future__ import annotations
 
 import json
+import logging
 import math
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -17,6 +18,8 @@ from typing import Any
 
 from lagfluid.data.datasets import load_metadata
 from lagfluid.state import SceneParams
+
+log = logging.getLogger(__name__)
 
 UNITS = {"dt": "s", "l0": "m", "gravity": "m/s^2", "viscosity": "m^2/s"}
 _TOLERANCE = 1e-6  # relative: a value equal to a bound up to rounding is inside
@@ -94,3 +97,33 @@ def range_warnings(model: str, networks: Mapping[str, Mapping[str, Any]], params
                 f"{value:.3g}: expect larger errors than its model card states"
             )
     return lines
+
+
+class RangeWarner:
+    """Logs each line of :func:`range_warnings` once per simulator (a simulator is reset per rollout).
+
+    Args:
+        model: the model's name, for the message.
+        networks: ``{network: {"range": {quantity: [low, high]}, ...}}`` (a network without a range is
+            never warned about).
+    """
+
+    def __init__(self, model: str, networks: Mapping[str, Mapping[str, Any]]) -> None:
+        self.model, self.networks = model, networks
+        self._said: set[str] = set()
+
+    def check(self, params: SceneParams) -> None:
+        """Warn (once each) about the parameters of ``params`` outside a network's training range."""
+        for line in range_warnings(self.model, self.networks, params):
+            if line not in self._said:
+                self._said.add(line)
+                log.warning("%s", line)
+
+
+def checkpoint_range(
+    path: str | Path, quantities: Sequence[str] = tuple(UNITS)
+) -> dict[str, list[float]] | None:
+    """The training range recorded in (or rebuilt for) the checkpoint at ``path``."""
+    from lagfluid.models.checkpoint import read_checkpoint
+
+    return range_from_checkpoint_meta(read_checkpoint(path).get("meta") or {}, quantities)

@@ -28,7 +28,7 @@ from lagfluid.models.checkpoint import CheckpointError
 from lagfluid.models.fgn.networks import KINDS, load_network, owned_stages, parameter_count
 from lagfluid.models.fgn.original import load_original_network
 from lagfluid.models.fgn.stages import LearnedAdvection, LearnedCollision, LearnedPressure
-from lagfluid.models.training_range import range_from_checkpoint_meta, range_warnings
+from lagfluid.models.training_range import RangeWarner, range_from_checkpoint_meta
 from lagfluid.physics.mps import CollisionRule, ExactAdvection, ExactPressure
 from lagfluid.physics.stages import SolverSettings, SplitStepSimulator
 from lagfluid.state import ParticleState, parse_dtype
@@ -49,14 +49,11 @@ class LearnedSplitStep(SplitStepSimulator):
     def __init__(self, *args: Any, networks: dict[str, Any], **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         self.networks = networks
-        self._warned: set[str] = set()
+        self._ranges = RangeWarner(self.name, networks)
 
     def reset(self, state: ParticleState, history: Sequence[ParticleState] = ()) -> None:
         """As the split-step scheme's; first one warning per parameter outside a network's training range."""
-        for line in range_warnings(self.name, self.networks, state.params):
-            if line not in self._warned:
-                self._warned.add(line)
-                log.warning("%s", line)
+        self._ranges.check(state.params)
         super().reset(state, history)
 
     @property
