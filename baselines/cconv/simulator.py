@@ -66,6 +66,8 @@ class CConvSimulator:
         surface_offset: boundary surface points in front of the wall particles, l0 (see ``boundary``).
         surface_weight: each surface point's normal is scaled by it (its share of the wall's area, in the
             network's points: :data:`DLF_SURFACE_WEIGHT` for DeepLagrangianFluids' network, 1 for ours).
+        trained_range: the scene parameters the network was trained on (a lagfluid checkpoint's; None for
+            DeepLagrangianFluids' network): a scene outside them is warned about once.
     """
 
     history_length = 0
@@ -79,6 +81,7 @@ class CConvSimulator:
         axes: Tensor,
         surface_offset: float = 0.5,
         surface_weight: float = 1.0,
+        trained_range: dict[str, list[float]] | None = None,
     ) -> None:
         self.net = net.eval()
         self.name = name
@@ -93,8 +96,7 @@ class CConvSimulator:
         self._timings: dict[str, float] = {}
         self._box: Tensor | None = None  # (S, 3) surface points, network axes
         self._box_normals: Tensor | None = None
-        trained = checkpoint_range(weights) if weights.endswith(".pt") and Path(weights).is_file() else None
-        self._ranges = RangeWarner(name, {name: {"range": trained}})
+        self._ranges = RangeWarner(name, {name: {"range": trained_range}})
 
     @property
     def parameters(self) -> int:
@@ -241,4 +243,4 @@ def build_simulator(cfg: Any) -> CConvSimulator:
             "train=cconv_cpu data=cpu) and pass model.weights=<that out_dir>"
         )
     net, offset = load_cconv(path, str(cfg.device), getattr(torch, str(cfg.dtype)))
-    return CConvSimulator(net, "cconv", str(path), torch.eye(3), offset)
+    return CConvSimulator(net, "cconv", str(path), torch.eye(3), offset, trained_range=checkpoint_range(path))
