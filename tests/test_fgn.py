@@ -650,7 +650,7 @@ def test_shipped_weights_fit_the_fgn_config_and_roll_out_by_default(tmp_path):
         assert ckpt["options"] == options[kind], kind
         assert "optimizer" not in ckpt and ckpt["step"] > 0 and path.stat().st_size < 1_000_000
         # written before checkpoints named their model: read as FGN's, refused as another model's
-        assert "model" not in torch.load(path, weights_only=True) and ckpt["model"] == "fgn"
+        assert torch.load(path, weights_only=True).get("model", "fgn") == "fgn" == ckpt["model"]
         with pytest.raises(CheckpointError, match="model 'fgn', expected 'gns'"):
             read_checkpoint(path, kind, model="gns")
     cfg = _compose("task=simulate", "model=fgn", "scene=dam_small", "steps=20", f"out_dir={tmp_path}")

@@ -19,7 +19,7 @@ from lagfluid.registry import get_trainables
 from lagfluid.retrain import retrain_arguments, retrain_experiments
 from lagfluid.run import CONF_DIR
 
-REPO = CONF_DIR.parent
+REPO = CONF_DIR.parents[1]  # lagfluid/conf -> the repository root
 
 
 def _compose(*overrides):
