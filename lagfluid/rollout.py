@@ -19,10 +19,10 @@ from statistics import median
 from typing import Any
 
 import torch
-from tqdm import tqdm
 
 from lagfluid.errors import ConfigError, RolloutError
 from lagfluid.models.simulator import Simulator
+from lagfluid.progress import progress_bar
 from lagfluid.state import ParticleState
 
 StepHook = Callable[[ParticleState, ParticleState, Any], None]
@@ -107,6 +107,8 @@ def rollout(
     history: Sequence[ParticleState] = (),
     progress: bool = False,
     reset: bool = True,
+    step_offset: int = 0,
+    record: dict[str, Any] | None = None,
 ) -> tuple[ParticleState, dict[str, Any]]:
     """Advance ``state`` by ``steps`` steps of ``simulator``.
 
@@ -122,9 +124,12 @@ def rollout(
             record that step's intermediates (handed to ``on_step``). None: never (timed runs stay clean).
         history: earlier states for ``simulator.reset`` (oldest first), e.g. frames before a trajectory's
             frame ``t`` when the rollout starts there.
-        progress: show a tqdm progress bar.
+        progress: show progress (a tqdm bar on a terminal, else a log line every 10 %).
         reset: call ``simulator.reset(state, history)`` first; pass False to continue a rollout in segments
             (warm neighbour list and PPE start).
+        step_offset: steps a resumed run took before ``state``: its frames and guard checks fall on the
+            same steps as one uninterrupted run's, and ``state`` (stored then) is not handed to ``on_frame``.
+        record: the record to extend (a resumed run's so far); None: a new one. ``on_frame`` may read it.
 
     Returns:
         The final state and a record with per-step wall times, per-stage times and diagnostics. Any exception
@@ -136,7 +141,8 @@ def rollout(
         raise RolloutError(f"steps must be >= 0, got {steps}")
     if write_every < 1:
         raise RolloutError(f"write_every must be >= 1, got {write_every}")
-    record: dict[str, Any] = {"step_seconds": [], "stage_seconds": {}, "info": {}}
+    if record is None:
+        record = {"step_seconds": [], "stage_seconds": {}, "info": {}}
     try:  # the start too: a Courant number far past the limit (|v| = 1e30) fails inside the first step
         guard.check(state)
     except RolloutError as err:
@@ -145,9 +151,11 @@ def rollout(
     if reset:
         simulator.reset(state, history)
 
-    bar = tqdm(total=steps, disable=not progress, desc=f"{simulator.name}", unit="step", dynamic_ncols=True)
+    bar = progress_bar(
+        step_offset + steps, enabled=progress, initial=step_offset, desc=simulator.name, unit="step"
+    )
     try:
-        if on_frame is not None:
+        if on_frame is not None and step_offset == 0:
             on_frame(state)
         for k in range(1, steps + 1):
             keep_fields = record_when is not None and record_when(state)
@@ -156,8 +164,9 @@ def rollout(
             new = simulator.step(state, record=keep_fields)
             _sync(state.device)
             elapsed = time.perf_counter() - start
-            write = k % write_every == 0 or k == steps
-            if write or k % guard.check_every == 0:
+            done = step_offset + k
+            write = done % write_every == 0 or k == steps
+            if write or done % guard.check_every == 0:
                 guard.check(new)
             # only steps whose result was accepted are counted
             record["step_seconds"].append(elapsed)

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import time
 from pathlib import Path
 from statistics import median
@@ -35,12 +36,13 @@ from lagfluid.config import (
     run_attributes,
     run_guard,
 )
-from lagfluid.data.store import TrajectoryWriter
+from lagfluid.data.store import TrajectoryWriter, open_lagfluid_file
 from lagfluid.errors import RolloutError
 from lagfluid.metrics import field_metrics, summarize
 from lagfluid.outputs import begin, part_path, publish, write_json
 from lagfluid.physics.stages import SolverSettings, lattice_constants
 from lagfluid.rollout import rollout
+from lagfluid.simulate_resume import RolloutCheckpoint, run_settings
 from lagfluid.state import ParticleState, ParticleType
 
 log = logging.getLogger(__name__)
@@ -106,6 +108,44 @@ class _FrameMetrics:
             self.snapshots["middle"] = snap
         self.snapshots["last"] = snap
 
+    def state_dict(self) -> dict[str, Any]:
+        """What a resumed run needs to go on (:mod:`lagfluid.simulate_resume`); arrays as tensors."""
+        return {
+            "density_errors": list(self.density_errors),
+            "divergences": list(self.divergences),
+            "count": self.count,
+            "snapshots": {
+                k: (t, torch.from_numpy(p), torch.from_numpy(q)) for k, (t, p, q) in self.snapshots.items()
+            },
+        }
+
+    def load_state_dict(self, saved: dict[str, Any], state: ParticleState) -> None:
+        """Restore :meth:`state_dict`'s values."""
+        self.density_errors = list(saved["density_errors"])
+        self.divergences = list(saved["divergences"])
+        self.count = int(saved["count"])
+        self.snapshots = {k: (float(t), p.numpy(), q.numpy()) for k, (t, p, q) in saved["snapshots"].items()}
+
+
+def _reopen_partial_trajectory(out_dir: Path, frames: int) -> TrajectoryWriter:
+    """The stopped run's trajectory, reopened after its first ``frames`` frames.
+
+    A kill -9 leaves it as the writer's part file; Ctrl-C, SIGTERM or a guard stop published it as
+    ``rollout.h5`` with ``complete=false`` (moved back to the part file here).
+    """
+    final = part_path(out_dir / "rollout.h5")
+    partial = final.with_name(final.name + ".part")
+    published = out_dir / "rollout.h5"
+    if not partial.exists() and published.exists():
+        with open_lagfluid_file(published) as f:
+            complete = bool(f["00000"].attrs.get("complete", False))
+        if complete:
+            raise RolloutError(f"resume=true: {published} is a complete run; nothing to resume")
+        os.replace(published, partial)
+    if not partial.exists():
+        raise RolloutError(f"resume=true: no partial trajectory in {out_dir} to continue")
+    return TrajectoryWriter.reopen(final, frames)
+
 
 def _write_preview(out_dir: Path, frames: _FrameMetrics, state: ParticleState, title: str) -> None:
     """``preview.png`` of the first, middle and last frame; a failure to draw it costs only the figure."""
@@ -142,20 +182,48 @@ def simulate(cfg: DictConfig) -> dict[str, Any]:
     simulator.reset(state, history)  # per-scene set-up can fail too (a plugin's checks, the history)
 
     out_dir = Path(cfg.out_dir)
-    begin(out_dir, OUTPUTS)
     params, nf = state.params, state.n_fluid
     write_every = int(cfg.write_every)
-    attrs = run_attributes(state, cfg, simulator.name, str(cfg.scene.name), write_every)
-    boundary = slice(nf, None)
-    writer = TrajectoryWriter(
-        part_path(out_dir / "rollout.h5"),
-        nf,
-        state.pos[boundary].cpu().numpy(),
-        state.ptype[boundary].cpu().numpy(),
-        attrs,
-    )
     total_frames = int(cfg.steps) // write_every + 1 + (1 if int(cfg.steps) % write_every else 0)
     frames = _FrameMetrics(state, settings, total_frames)
+    checkpoint = RolloutCheckpoint(
+        out_dir, run_settings(cfg), simulator.history_length, float(cfg.checkpoint_every_s)
+    )
+    checkpoint.memory = getattr(simulator, "rollout_memory", None)
+    record: dict[str, Any] = {"step_seconds": [], "stage_seconds": {}, "info": {}}
+    wall_before = 0.0
+    start_state = state
+    if bool(cfg.resume):  # checked before any file is touched, as everything else
+        start_state, before, memory, written, extra = checkpoint.load(state)
+        if start_state.step > int(cfg.steps):
+            raise RolloutError(
+                f"resume=true: the run in {out_dir} is at step {start_state.step}, past steps={cfg.steps}"
+            )
+        if simulator.history_length:  # the history the run had (constants stay the start's, see module doc)
+            simulator.reset(start_state, before)
+            if memory and hasattr(simulator, "restore_rollout_memory"):
+                simulator.restore_rollout_memory(start_state, memory)
+        for state_before in before:
+            checkpoint.on_step(state_before, start_state, None)
+        record, wall_before = extra["record"], float(extra["wall_time_s"])
+        frames.load_state_dict(extra["frames"], start_state)
+        writer = _reopen_partial_trajectory(out_dir, written)
+        begin(out_dir, OUTPUTS[1:])
+        log.info("resuming %s at step %d (%d frames stored)", out_dir, start_state.step, written)
+    else:
+        begin(out_dir, OUTPUTS)
+        checkpoint.remove()
+        attrs = run_attributes(state, cfg, simulator.name, str(cfg.scene.name), write_every)
+        boundary = slice(nf, None)
+        writer = TrajectoryWriter(
+            part_path(out_dir / "rollout.h5"),
+            nf,
+            state.pos[boundary].cpu().numpy(),
+            state.ptype[boundary].cpu().numpy(),
+            attrs,
+        )
+    commit = str(writer.group.attrs.get("git_commit", ""))
+    start = time.perf_counter()
 
     def on_frame(s: ParticleState) -> None:
         writer.append(
@@ -165,20 +233,27 @@ def simulate(cfg: DictConfig) -> dict[str, Any]:
             s.pressure[:nf].detach().cpu().numpy(),
         )
         frames(s)
+        extra = {
+            "record": record,
+            "frames": frames.state_dict(),
+            "wall_time_s": wall_before + time.perf_counter() - start,
+        }
+        checkpoint.maybe_save(s, writer.frames, extra)
 
     stop_reason, complete = "", True
-    record: dict[str, Any] = {"step_seconds": [], "stage_seconds": {}, "info": {}}
-    start = time.perf_counter()
     try:
         _, record = rollout(
             simulator,
-            state,
-            int(cfg.steps),
+            start_state,
+            int(cfg.steps) - start_state.step,
             guard=guard,
             write_every=write_every,
             on_frame=on_frame,
+            on_step=checkpoint.on_step,
             progress=bool(cfg.progress),
             reset=False,
+            step_offset=start_state.step,
+            record=record,
         )
     except BaseException as err:  # a guard stop, a bug, Ctrl-C: the file says the run is incomplete and why
         stop_reason = str(err) if isinstance(err, RolloutError) else f"{type(err).__name__}: {err}"
@@ -187,6 +262,8 @@ def simulate(cfg: DictConfig) -> dict[str, Any]:
         raise
     finally:
         try:
+            if complete:
+                checkpoint.remove()
             for key, value in simulator.attributes().items():
                 writer.group.attrs[key] = value
             writer.close(complete=complete, stop_reason=stop_reason)
@@ -210,10 +287,10 @@ def simulate(cfg: DictConfig) -> dict[str, Any]:
                 "density_error": summarize(frames.density_errors),
                 "velocity_divergence_per_s": summarize(frames.divergences),
                 "frames_evaluated": len(frames.density_errors),
-                "wall_time_total_s": time.perf_counter() - start,
+                "wall_time_total_s": wall_before + time.perf_counter() - start,
                 "simulator": simulator.attributes(),
                 "version": lagfluid.__version__,
-                "git_commit": attrs["git_commit"],
+                "git_commit": commit,
             }
             write_json(part_path(out_dir / "metrics.json"), metrics)
             _write_preview(out_dir, frames, state, f"{simulator.name} on {cfg.scene.name}")

@@ -55,7 +55,6 @@ from omegaconf import DictConfig
 from torch import Tensor, nn
 from torch.utils.data import ConcatDataset
 from torch_geometric.loader import DataLoader
-from tqdm import tqdm
 
 import lagfluid
 from lagfluid.config import apply_threads, run_device
@@ -65,6 +64,7 @@ from lagfluid.models.checkpoint import export_weights, network_payload, read_che
 from lagfluid.models.trainable import Trainable
 from lagfluid.models.training_range import UNITS, range_from_checkpoint_meta, training_range
 from lagfluid.onpolicy_rounds import OnPolicy, check_same_scenes, run_rounds
+from lagfluid.progress import progress_bar
 from lagfluid.registry import get_trainables
 
 log = logging.getLogger(__name__)
@@ -343,7 +343,7 @@ def train_one(cfg: DictConfig, trainable: Trainable, out_dir: Path) -> dict[str,
         save_checkpoint(ckpt_path, payload)
 
     step, window, t_last = start_step, [], time.perf_counter()
-    bar = tqdm(total=iterations, initial=start_step, desc=f"train {kind}", disable=not cfg.progress)
+    bar = progress_bar(iterations, enabled=bool(cfg.progress), initial=start_step, desc=f"train {kind}")
     try:
         while step < iterations:
             for batch in loader:

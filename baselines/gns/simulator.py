@@ -116,6 +116,26 @@ class GNSSimulator:
         self._velocities = torch.zeros(nf, h, 3, dtype=state.dtype, device=state.device)
         self._warm_frames = h
 
+    def rollout_memory(self) -> dict[str, torch.Tensor]:
+        """What the rollout carries beyond the state: the velocity history (Nf, H, 3), for a resume.
+
+        A resumed run (:mod:`lagfluid.simulate_resume`) restores it bit for bit; velocities rebuilt from the
+        stored positions differ from the integrated ones in the last bits.
+        """
+        if self._velocities is None or self._warm_frames:
+            return {}
+        return {"velocities": self._velocities}
+
+    def restore_rollout_memory(self, state: ParticleState, memory: dict[str, torch.Tensor]) -> None:
+        """Continue from ``state`` with :meth:`rollout_memory`'s ``memory`` (after :meth:`reset`)."""
+        velocities = memory["velocities"].to(device=state.device, dtype=state.dtype)
+        if velocities.shape != (state.n_fluid, self.history_length, 3):
+            raise RolloutError(
+                f"GNS velocity history of shape {tuple(velocities.shape)} does not fit {state.n_fluid} fluid "
+                f"particles and a history of {self.history_length}"
+            )
+        self._velocities, self._warm_frames, self._next_step = velocities, 0, state.step
+
     def _mps_state(self, state: ParticleState) -> ParticleState:
         """``state`` at the MPS step of the warm start."""
         return ParticleState(

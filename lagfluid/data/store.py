@@ -96,6 +96,42 @@ class TrajectoryWriter:
         self.group.create_dataset("boundary_type", data=np.asarray(boundary_type, np.int8))
         self.frames = 0
 
+    @classmethod
+    def reopen(cls, path: str | os.PathLike, frames: int, group: str = "00000") -> TrajectoryWriter:
+        """Continue the partial trajectory ``path + ".part"`` after its first ``frames`` frames.
+
+        Frames stored after them (written after the resume checkpoint) are dropped.
+
+        Raises:
+            TrajectoryFileError: the file is unreadable (killed mid-write) or holds fewer frames.
+        """
+        self = cls.__new__(cls)
+        self.path = Path(path)
+        self.tmp_path = self.path.with_name(self.path.name + ".part")
+        try:
+            self.file = h5py.File(self.tmp_path, "r+", locking=False)
+            self.group = self.file[group]
+            self.time = self.group["time"]
+            self.frame_arrays = {name: self.group[name] for name in ("position", "velocity", "pressure")}
+        except (OSError, KeyError) as err:
+            if getattr(self, "file", None) is not None:
+                self.file.close()
+            raise TrajectoryFileError(
+                f"cannot continue the partial trajectory {self.tmp_path} (damaged by the stop?): {err}"
+            ) from err
+        have = min(int(d.shape[0]) for d in (self.time, *self.frame_arrays.values()))
+        if have < frames:
+            self.file.close()
+            raise TrajectoryFileError(
+                f"the partial trajectory {self.tmp_path} holds {have} whole frames, the checkpoint {frames}"
+            )
+        for ds in (self.time, *self.frame_arrays.values()):
+            ds.resize(frames, axis=0)
+        self.group.attrs["complete"] = False
+        self.frames = int(frames)
+        self.file.flush()
+        return self
+
     def append(self, time: float, position: np.ndarray, velocity: np.ndarray, pressure: np.ndarray) -> None:
         """Append one frame: ``position``/``velocity`` (Nf, 3), ``pressure`` (Nf,); flushes to disk."""
         t = self.frames

@@ -78,6 +78,12 @@ class Simulator(Protocol):
         """Scalars worth storing with a rollout (reference densities, where the weights came from, ...)."""
         ...
 
+    # Optional, for a simulator that carries tensors from one step to the next beyond the state (GNS's
+    # integrated velocity history), so that a resumed run (``resume=true``) continues bit for bit:
+    #   rollout_memory() -> dict[str, Tensor]          after a step: what the next step needs
+    #   restore_rollout_memory(state, memory) -> None  after reset(state, history): take it back
+    # Without them a resumed run calls reset(state, history) with the states before the checkpoint.
+
 
 _REQUIRED = (
     "name",
