@@ -1,10 +1,14 @@
 """Dataset generation (task=generate) and the PyG datasets over it, on tiny random scenes (seconds)."""
 
 import json
+import os
 import shutil
+import signal
 import subprocess
 import sys
+import time
 from dataclasses import replace
+from pathlib import Path
 
 import h5py
 import numpy as np
@@ -35,6 +39,7 @@ from lagfluid.state import ParticleType
 
 # sample_every=1: frame s + 1 is the state after sample s's step, so the pressure correction and the clamp
 # can be checked against the trajectory too.
+REPO = Path(__file__).resolve().parents[1]
 TINY = ("task=generate", "scene=random", "data=tiny", "data.sample_every=1", "steps=5", "progress=false")
 
 
@@ -452,3 +457,26 @@ def test_next_steps_are_the_solver_steps_after_each_sample(tmp_path):
 def test_step_windows_name_a_dataset_without_next_steps(dataset):
     with pytest.raises(TrajectoryFileError, match=r"data\.next_steps=2"):
         StepWindows(dataset[0], "train", steps=2)
+
+
+def test_generation_killed_by_sigkill_resumes_to_the_uninterrupted_dataset(tmp_path):
+    """A real kill -9 in the middle of a scene: the rerun keeps finished scenes and redoes the rest."""
+    killed, whole = tmp_path / "killed", tmp_path / "whole"
+    command = [sys.executable, "-m", "lagfluid.run", *TINY, "steps=12", "threads=1", f"data.out_dir={killed}"]
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    proc = subprocess.Popen(command, cwd=REPO, env=env, stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 120
+    while not scene_path(killed, 0).exists() and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.01)
+    proc.send_signal(signal.SIGKILL)
+    assert proc.wait() == -signal.SIGKILL, "the generation ended before it could be killed"
+    assert not (killed / "metadata.json").exists()
+    first = scene_path(killed, 0).stat().st_mtime_ns
+    subprocess.run(command, cwd=REPO, env=env, check=True, stderr=subprocess.DEVNULL)
+    assert scene_path(killed, 0).stat().st_mtime_ns == first  # the finished scene was kept
+    _, meta = _generate(whole, "steps=12")
+    for k in range(3):
+        a, b = read_trajectory(scene_path(whole, k)), read_trajectory(scene_path(killed, k))
+        for name in ("position", "velocity", "pressure"):
+            np.testing.assert_array_equal(a[name], b[name], err_msg=f"scene {k} {name}")
+    assert json.loads((killed / "metadata.json").read_text())["statistics"] == meta["statistics"]
