@@ -74,6 +74,19 @@ def test_dam_fluid_is_a_lattice_one_l0_from_the_inner_walls():
     assert walls[:, 2].min() == -1 and (walls[:, 2] == 0).sum() == 44 * 24
 
 
+def test_dam_column_moves_with_its_initial_velocity_and_fluid_lower():
+    small = {"fluid_size": (4, 4, 4), "tank_size": (11, 9)}
+    state = build_scene("dam", velocity=(-5.0, 0.0, 1.0), fluid_lower=(3, 2, 1), **small)
+    xyz = lattice(state)[: state.n_fluid]
+    assert xyz.min(axis=0).tolist() == [3, 2, 1] and xyz.max(axis=0).tolist() == [6, 5, 4]
+    np.testing.assert_array_equal(state.vel[: state.n_fluid].numpy(), np.tile([-5.0, 0.0, 1.0], (64, 1)))
+    assert float(state.vel[state.n_fluid :].abs().max()) == 0.0  # boundaries stay at rest
+    with pytest.raises(SceneError, match=r"lies in or beyond a wall"):  # a fluid layer on the wall's
+        build_scene("dam", fluid_lower=(0, 1, 1), **small)
+    with pytest.raises(SceneError, match=r"from fluid_lower \(8, 1, 1\) does not fit"):
+        build_scene("dam", fluid_lower=(8, 1, 1), **small)
+
+
 def test_dam_respects_l0_and_dtype():
     state = build_scene(
         "dam", SceneParams(l0=0.02), dtype=torch.float64, fluid_size=(3, 3, 3), tank_size=(5, 4)

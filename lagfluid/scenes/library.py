@@ -92,6 +92,8 @@ def dam_layout(
     n_wall: int = 2,
     n_dummy: int = 2,
     name: str = "dam",
+    velocity: Sequence[float] = (0.0, 0.0, 0.0),
+    fluid_lower: Sequence[int] = (1, 1, 1),
 ) -> Scene:
     """Dam collapse: a fluid column against the x = 0 wall of an open tank.
 
@@ -109,23 +111,30 @@ def dam_layout(
         n_wall: wall layers.
         n_dummy: dummy layers.
         name: scene name for messages.
+        velocity: (3,) initial fluid velocity, m/s (a jet at the wall: ``[-5, 0, 0]``).
+        fluid_lower: (3,) lattice coordinates of the column's first particle; (1, 1, 1) touches the x = 0,
+            y = 0 walls and the floor at one l0; 0 on an axis puts a fluid layer on the wall's (refused by
+            the scene validation: fluid inside the wall layers).
 
     Returns:
         the scene.
     """
     fx, fy, fz = as_vector("fluid_size", fluid_size, 3, integer=True, positive=True)
     lx, ly = as_vector("tank_size", tank_size, 2, integer=True, positive=True)
-    if fx > lx - 1 or fy > ly - 1:
+    lower = as_vector("fluid_lower", fluid_lower, 3, integer=True)
+    if fx + lower[0] - 1 > lx - 1 or fy + lower[1] - 1 > ly - 1 or min(lower) < 0:
         raise SceneError(
-            f"{name}: fluid_size {(fx, fy, fz)} does not fit in tank_size {(lx, ly)}: the tank holds at "
-            f"most {lx - 1} x {ly - 1} fluid particles across"
+            f"{name}: fluid_size {(fx, fy, fz)} from fluid_lower {tuple(lower)} does not fit in tank_size "
+            f"{(lx, ly)}: the tank holds at most {lx - 1} x {ly - 1} fluid particles across, from 1"
         )
     height = RUNUP_FACTOR * fz if wall_height is None else check_positive_int("wall_height", wall_height)
-    if height < fz:
-        raise SceneError(f"{name}: wall_height {height} is below the fluid column's top (z = {fz} l0)")
+    if height < fz + lower[2] - 1:
+        raise SceneError(
+            f"{name}: wall_height {height} is below the fluid column's top (z = {fz + lower[2] - 1} l0)"
+        )
     return Scene(
         name=name,
-        fluid=(FluidBlock(lower=(1, 1, 1), size=(fx, fy, fz)),),
+        fluid=(FluidBlock(lower=lower, size=(fx, fy, fz), velocity=tuple(velocity)),),
         container=Container(size=(lx, ly), height=height, open_top=True, rim=rim),
         n_wall=n_wall,
         n_dummy=n_dummy,

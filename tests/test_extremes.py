@@ -1,0 +1,128 @@
+"""``python -m benchmarks.extremes``: verdicts from evaluate's metrics, the holds summary, a quick sweep."""
+
+from __future__ import annotations
+
+import csv
+import math
+
+import pytest
+
+from benchmarks.extremes import (
+    AXES,
+    DEGRADED_CHAMFER_L0,
+    DEGRADED_DENSITY_FACTOR,
+    README_END,
+    README_START,
+    entries,
+    holds,
+    main,
+    verdict,
+)
+from benchmarks.tables.bench import Run
+from benchmarks.tables.simulators import Simulator
+
+L0 = 0.05
+FGN, MPS = Simulator("fgn", "FGN", "fgn"), Simulator("mps", "MPS", "mps")
+
+
+def _run(sim=FGN, complete=True, chamfer_mm=5.0, density=0.02, reference=0.01, stop="", error=""):
+    run = Run("k", sim.label, sim, None, [])
+    if error:
+        run.error = error
+        return run
+    run.metrics = {
+        "complete": complete,
+        "stop_reason": stop,
+        "steps": 7,
+        "summary": {
+            "chamfer_mm": {"mean": chamfer_mm},
+            "density_error": {"model": {"mean": density}, "reference": {"mean": reference}},
+        },
+    }
+    return run
+
+
+def test_verdicts_follow_the_stated_bounds():
+    assert verdict(_run(), L0) == ("stable", "")
+    just = 1e3 * L0 * DEGRADED_CHAMFER_L0
+    assert verdict(_run(chamfer_mm=just), L0)[0] == "stable"  # the bound itself is still stable
+    kind, reason = verdict(_run(chamfer_mm=just * 1.01), L0)
+    assert kind == "degraded" and "Chamfer" in reason
+    kind, reason = verdict(_run(density=0.01 * DEGRADED_DENSITY_FACTOR * 1.01), L0)
+    assert kind == "degraded" and "density error" in reason
+    assert verdict(_run(chamfer_mm=math.nan), L0)[0] == "degraded"  # no finite error is never stable
+
+
+def test_a_guard_stop_and_a_refusal_keep_their_reason():
+    stop = "step 12: fluid particle 3 left the domain at [1.0, 2.0, 3.0] (domain ...); reduce dt"
+    assert verdict(_run(complete=False, stop=stop), L0) == (
+        "stopped",
+        "step 12: fluid particle 3 left the domain",
+    )
+    refused = "SceneError: scene 'dam': fluid block 0 ... lies in or beyond a wall"
+    assert verdict(_run(error=refused), L0) == (
+        "refused",
+        "scene 'dam': fluid block 0 ... lies in or beyond a wall",
+    )
+    # the MPS reference stopping is MPS's own stop; a learned model then has nothing to be compared with
+    reference = (
+        "RolloutError: the MPS reference stopped, nothing to compare with: step 0: Courant number 0.8 (x)"
+    )
+    assert verdict(_run(sim=MPS, error=reference), L0) == ("stopped", "step 0: Courant number 0.8")
+    assert verdict(_run(error=reference), L0)[0] == "refused"
+    na = _run()
+    na.info["not_applicable"] = "steps by its training frames' 8 ms"
+    assert verdict(na, L0) == ("n/a", "steps by its training frames' 8 ms")
+
+
+def test_holds_lists_stable_then_degraded_then_stops():
+    dt = AXES["dt"]
+    cells = [
+        (0.0005, "stable"),
+        (0.002, "stable"),
+        (0.004, "degraded"),
+        (0.008, "stopped"),
+        (0.016, "stopped"),
+    ]
+    assert holds(dt, cells) == "stable 0.5 ms..2 ms; degraded 4 ms; stops 8 ms..16 ms"
+    assert holds(dt, [(0.002, "n/a")]) == "n/a"
+
+
+def test_every_simulator_with_a_dam_row_and_both_mps_profiles_are_swept():
+    keys = [e.sim.key for e in entries(None)]
+    for key in ("mps", "mps_corrected", "fgn", "hybrid_advection", "hybrid_pressure", "fgn_original", "gns"):
+        assert key in keys
+    for key in ("cconv", "cconv_original", "fgn_gcn", "fgn_sage", "fgn_mlp"):
+        assert key in keys
+    assert "solver=mps_corrected" in next(e for e in entries(["mps_corrected"])).extra
+    with pytest.raises(ValueError, match="unknown simulators \\['bogus'\\]"):
+        entries(["bogus"])
+
+
+def test_a_quick_sweep_writes_verdicts_tables_plots_and_the_readme_section(tmp_path):
+    readme = tmp_path / "README.md"
+    readme.write_text(f"# x\n\n{README_START}\nold\n{README_END}\nrest\n")
+    argv = ["--quick", "--axes", "dt", "velocity", "--simulators", "mps", "fgn", "--readme"]
+    argv += ["--results", str(tmp_path), "--runs-dir", str(tmp_path / "runs"), "--readme-path", str(readme)]
+    assert main(argv) == 0
+    with open(tmp_path / "extremes_quick.csv") as f:
+        rows = {(r["axis"], r["value"], r["simulator"]): r for r in csv.DictReader(f)}
+    assert len(rows) == 8
+    assert rows[("dt", "0.002", "mps")]["verdict"] == "stable"
+    assert float(rows[("dt", "0.002", "mps")]["chamfer_mean_mm"]) == 0.0  # MPS is its own reference there
+    assert rows[("dt", "0.04", "fgn")]["verdict"] == "stopped"  # 20x its training dt: the guard ends it
+    assert rows[("velocity", "20.0", "mps")]["verdict"] == "stopped"  # Courant 0.8 at the start
+    assert rows[("velocity", "20.0", "mps")]["reason"].startswith("step 0: Courant number 0.8")
+    text = (tmp_path / "extremes_quick.md").read_text()
+    assert "## Summary" in text and "### time step (ms)" in text and "stopped @0" in text
+    assert (tmp_path / "extremes_quick_dt.png").stat().st_size > 10_000
+    new = readme.read_text()
+    assert "old" not in new and "| mps | stable 2 ms" in new and new.endswith(f"{README_END}\nrest\n")
+    # a rerun of one axis and simulator completes the results instead of replacing them
+    assert main([*argv[:1], "--axes", "velocity", "--simulators", "mps", *argv[7:]]) == 0
+    with open(tmp_path / "extremes_quick.csv") as f:
+        again = {(r["axis"], r["value"], r["simulator"]): r for r in csv.DictReader(f)}
+    assert again.keys() == rows.keys()
+    assert again[("dt", "0.04", "fgn")]["date"] == rows[("dt", "0.04", "fgn")]["date"]
+    assert "8 rows" not in (tmp_path / "extremes_quick.md").read_text()
+    assert "6 rows of other axes or simulators kept" in (tmp_path / "extremes_quick.md").read_text()
