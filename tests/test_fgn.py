@@ -3,6 +3,11 @@
 import csv
 import functools
 import json
+import os
+import signal
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -26,6 +31,8 @@ from lagfluid.run import CONF_DIR
 from lagfluid.simulate import simulate
 from lagfluid.state import ParticleType
 from lagfluid.train import learning_rate, train
+
+REPO = Path(__file__).resolve().parents[1]
 
 SHARED = Path(__file__).resolve().parents[2] / "shared"
 
@@ -478,6 +485,45 @@ def test_a_resumed_training_ends_with_the_uninterrupted_runs_weights(tiny_data, 
         ),
         stage,
     )
+
+
+def test_a_training_killed_by_sigkill_resumes_to_the_uninterrupted_runs_weights(tiny_data, tmp_path):
+    """A real kill -9 (no exception handler runs), then the same command: the uninterrupted run's weights."""
+    iterations = 400
+    args = [
+        "task=train",
+        "model=fgn",
+        "stage=collision",
+        "data=tiny",
+        f"data.out_dir={tiny_data}",
+        "progress=false",
+        "threads=1",
+        f"train.iterations.collision={iterations}",
+        "train.checkpoint_every=10",
+        "train.log_every=10",
+        "train.valid_every=100",
+        "train.stat_samples=8",
+    ]
+    command = [sys.executable, "-m", "lagfluid.run", *args]
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    killed, whole = tmp_path / "killed", tmp_path / "whole"
+    proc = subprocess.Popen([*command, f"out_dir={killed}"], cwd=REPO, env=env, stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 120
+    while not (killed / "collision.pt").exists() and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.01)
+    proc.send_signal(signal.SIGKILL)
+    assert proc.wait() == -signal.SIGKILL, "the training ended before it could be killed"
+    assert read_checkpoint(killed / "collision.pt")["step"] < iterations
+    for out in (killed, whole):
+        subprocess.run([*command, f"out_dir={out}"], cwd=REPO, env=env, check=True, stderr=subprocess.DEVNULL)
+    a, b = (read_checkpoint(out / "collision.pt") for out in (whole, killed))
+    assert a["step"] == b["step"] == iterations
+    for key, value in a["state_dict"].items():
+        assert torch.equal(value, b["state_dict"][key]), key
+    losses = [(out / "collision_loss.csv").read_text() for out in (whole, killed)]
+    assert [line.split(",")[:4] for line in losses[0].splitlines()] == [
+        line.split(",")[:4] for line in losses[1].splitlines()
+    ]  # every logged loss (the last column, elapsed seconds, differs)
 
 
 def test_bad_checkpoints_and_stages_are_clear_errors(tmp_path, tiny_data):
