@@ -16,6 +16,26 @@ REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared"
 
 
+def pytest_report_header(config: pytest.Config) -> str:
+    """Say first whether the authors' grids and weights can be checked in this run."""
+    present = (SHARED / "reference").is_dir()
+    return f"../shared/reference: {'present' if present else 'ABSENT: their numeric checks will be skipped'}"
+
+
+@pytest.hookimpl(trylast=True)
+def pytest_terminal_summary(terminalreporter, exitstatus: int, config: pytest.Config) -> None:
+    """Count the checks skipped for want of ``../shared`` in one line at the end, so nobody misses them."""
+    skipped = [
+        r for r in terminalreporter.stats.get("skipped", []) if "../shared" in str(getattr(r, "longrepr", ""))
+    ]
+    if skipped:
+        terminalreporter.write_line(
+            f"NOTE: {len(skipped)} checks against the authors' grids and weights and DeepLagrangianFluids' "
+            "weights were skipped: ../shared/reference is not beside this checkout",
+            yellow=True,
+        )
+
+
 @pytest.fixture
 def authors_dam_grid() -> Path:
     path = SHARED / "reference" / "fgn_original" / "grids" / "dam_col_4k.npz"

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import h5py
 import pytest
+import torch
 from hydra import compose, initialize_config_dir
 
 from lagfluid.errors import ConfigError
@@ -243,6 +244,59 @@ def test_a_model_that_blows_up_is_evaluated_up_to_the_stop(cli_run, tmp_path, mo
     # a simulator without recorded intermediates has no one-step errors
     assert all(math.isnan(v) for v in metrics["frames"]["advection_nmae"])
     assert json.loads((tmp_path / "metrics.json").read_text())["frames"]["advection_nmae"] == [None, None]
+
+
+class _Frozen:
+    """A simulator that never moves the fluid: its errors against MPS are computable by hand."""
+
+    name, dt, history_length, max_courant, parameters, last_fields = "frozen", None, 0, None, 0, None
+
+    def __init__(self, cfg):
+        self.last_info, self.last_timings = {}, {}
+
+    def reset(self, state, history=()):
+        pass
+
+    def step(self, state, *, record=False):
+        nf = state.n_fluid
+        return state.advanced_fluid(state.pos[:nf], torch.zeros_like(state.vel[:nf]), state.params.dt)
+
+    def attributes(self):
+        return {}
+
+
+def test_a_model_that_differs_from_mps_gets_the_errors_computed_by_hand(cli_run, tmp_path, monkeypatch):
+    """Unlike MPS against itself, these numbers are not zero: each is recomputed here from the files."""
+    from lagfluid import registry
+    from lagfluid.data.store import read_trajectory
+    from lagfluid.metrics import chamfer_distance, kinetic_energy, position_mse
+
+    _, ref_dir, _ = cli_run
+    monkeypatch.setitem(registry._REGISTERED, "frozen", _Frozen)
+    metrics = evaluate(
+        _compose("model.name=frozen", f"out_dir={tmp_path}", f"evaluate.reference_dir={ref_dir}")
+    )
+    ref = read_trajectory(metrics["reference"]["path"])
+    model = read_trajectory(tmp_path / "rollout.h5")
+    start, mass = model["position"][0], 1000.0 * 0.05**3
+    frames = metrics["frames"]
+    assert frames["step"] == list(range(STEPS + 1))
+    for k in range(STEPS + 1):
+        assert frames["chamfer_mm"][k] == pytest.approx(
+            1e3 * chamfer_distance(start, ref["position"][k]), rel=1e-6
+        )
+        assert frames["position_mse_m2"][k] == pytest.approx(
+            position_mse(start, ref["position"][k]), rel=1e-6
+        )
+        energy = kinetic_energy(ref["velocity"][k], mass)
+        assert frames["kinetic_energy_J"]["reference"][k] == pytest.approx(energy, rel=1e-6)
+    assert frames["chamfer_mm"][-1] > 0.1 and frames["position_mse_m2"][-1] > 0  # MPS's column did move
+    assert frames["kinetic_energy_J"]["model"][1:] == [0.0] * STEPS
+    assert frames["kinetic_energy_rel_error"][1:] == pytest.approx([1.0] * STEPS)  # |0 - E| / E
+    # the frozen fluid keeps its initial density error at every frame
+    assert frames["density_error"]["model"] == pytest.approx(
+        [frames["density_error"]["model"][0]] * (STEPS + 1)
+    )
 
 
 def test_unknown_model_is_a_clear_error_before_any_reference_run(tmp_path):

@@ -605,10 +605,18 @@ def test_checkpoints_record_their_training_range_and_a_rollout_outside_it_warns_
     assert len(warnings("dt=0.004")) == 3  # every network saw 2 ms only
 
 
-def test_learning_rate_decays_from_start_to_end():
-    assert learning_rate(0, 100, 1e-3, 6.25e-5) == pytest.approx(1e-3)
-    assert learning_rate(99, 100, 1e-3, 6.25e-5) == pytest.approx(6.25e-5)
-    assert learning_rate(50, 100, 1e-3, 6.25e-5) < 1e-3
+def test_learning_rate_decays_exponentially_from_start_to_end():
+    assert learning_rate(0, 101, 1e-3, 6.25e-5) == pytest.approx(1e-3, rel=1e-12)
+    assert learning_rate(100, 101, 1e-3, 6.25e-5) == pytest.approx(6.25e-5, rel=1e-12)
+    # half-way: the geometric mean 2.5e-4 (a linear schedule would give 5.3e-4); every step the same factor
+    assert learning_rate(50, 101, 1e-3, 6.25e-5) == pytest.approx(2.5e-4, rel=1e-12)
+    ratios = [
+        learning_rate(k + 1, 101, 1e-3, 6.25e-5) / learning_rate(k, 101, 1e-3, 6.25e-5) for k in range(100)
+    ]
+    assert ratios == pytest.approx([(6.25e-5 / 1e-3) ** 0.01] * 100, rel=1e-12)
+    # milestones: halved at each (DeepLagrangianFluids' schedule), lr_end unused
+    steps = [learning_rate(k, 50, 1e-3, 0.0, milestones=[10, 20]) for k in (0, 9, 10, 19, 20, 49)]
+    assert steps == pytest.approx([1e-3, 1e-3, 5e-4, 5e-4, 2.5e-4, 2.5e-4], rel=1e-12)
 
 
 def test_learned_acceleration_is_what_the_scheme_integrates(trained):

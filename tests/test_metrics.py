@@ -41,6 +41,42 @@ def test_density_error_and_divergence_of_two_particles_by_hand():
     assert m.velocity_divergence == pytest.approx(3.3, rel=1e-12)
 
 
+def test_density_error_averages_compression_and_expansion_as_magnitudes():
+    # Two pairs far apart, n0 = 1.05, re = 2.1 (l0 = 1). Pair 1 at spacing 1: n = 1.1, n/n0 - 1 = +0.0476.
+    # Pair 2 at spacing r with w(r) = 2.1/r - 1 = 0.98 n0: n/n0 - 1 = -0.02 (still interior: >= 0.97).
+    # The error is the mean magnitude, (2 * 0.0476 + 2 * 0.02) / 4; a signed mean would give 0.0138.
+    r = 2.1 / (1 + 0.98 * 1.05)
+    pos = torch.tensor([[0.0, 0, 0], [1, 0, 0], [10, 0, 0], [10 + r, 0, 0]], dtype=torch.float64)
+    m = field_metrics(pos, torch.zeros_like(pos), torch.ones(4, dtype=torch.int64), 1.05, 2.1, 2.1)
+    assert m.interior_particles == 4
+    assert m.density_error == pytest.approx((2 * (1.1 / 1.05 - 1) + 2 * 0.02) / 4, rel=1e-12)
+
+
+def test_kinetic_energy_of_runs_at_two_spacings_uses_each_runs_particle_mass(tmp_path):
+    """The same block moving at 1 m/s as 8 particles of l0 = 0.05 and as 1 of l0 = 0.1: the same energy."""
+    from lagfluid.data.store import TrajectoryWriter
+    from lagfluid.evaluate.compare import compare
+    from lagfluid.physics.stages import SolverSettings
+
+    def write(path, l0, n):
+        k = np.arange(n) * l0
+        pos = np.stack(np.meshgrid(k, k, k, indexing="ij"), -1).reshape(-1, 3) + 1.0
+        attrs = {"dt": 0.002, "l0": l0, "density": 1000.0, "dim": 3}
+        with TrajectoryWriter(path, len(pos), np.zeros((1, 3)), np.array([2]), attrs) as w:
+            for step in range(3):
+                t = 0.002 * step
+                moving = np.tile([1.0, 0, 0], (len(pos), 1))
+                w.append(t, pos + moving * t, moving, np.zeros(len(pos)))
+        return path
+
+    fine, coarse = write(tmp_path / "fine.h5", 0.05, 2), write(tmp_path / "coarse.h5", 0.1, 1)
+    out = compare(coarse, fine, SolverSettings())
+    energy = 0.5 * 1000.0 * 0.1**3  # J: 1 kg of water at 1 m/s
+    assert out["kinetic_energy_J"]["model"] == pytest.approx([energy] * 3, rel=1e-6)
+    assert out["kinetic_energy_J"]["reference"] == pytest.approx([energy] * 3, rel=1e-6)
+    assert out["kinetic_energy_rel_error"] == pytest.approx([0.0] * 3, abs=1e-6)
+
+
 def test_field_metrics_without_interior_particles_are_zero():
     pos = torch.tensor([[0.0, 0, 0], [10, 0, 0]], dtype=torch.float64)
     m = field_metrics(pos, torch.zeros_like(pos), torch.ones(2, dtype=torch.int64), 1.0, 2.1, 2.1)

@@ -116,6 +116,21 @@ def test_lattice_interior_degree(backend, dtype, factor):
 
 
 @pytest.mark.parametrize("backend", [*FAST, "brute"])
+@pytest.mark.parametrize(("radius", "degree"), [(1.0, 0), (2.0, 26), (3.0, 6 + 12 + 8 + 6 + 24 + 24 + 12)])
+def test_pairs_at_exactly_the_radius_are_not_neighbours(backend, radius, degree):
+    """On a unit lattice (exact in floating point) pairs at 1, 2, 3 lie on the radius: ``< r`` drops them.
+
+    Degrees: integer vectors with |v|^2 < r^2 (|v|^2 = 1, 2, 3, 4, 5, 6, 8: 6, 12, 8, 6, 24, 24, 12; no 7).
+    """
+    grid = torch.stack(torch.meshgrid(*[torch.arange(9)] * 3, indexing="ij"), dim=-1).reshape(-1, 3)
+    pos = grid.to(torch.float64)
+    out = radius_graph(pos, radius, backend=backend)
+    assert torch.equal(out, oracle(pos, radius))
+    centre = (4 * 9 + 4) * 9 + 4
+    assert int(torch.bincount(out[1], minlength=len(pos))[centre]) == degree == lattice_degree(radius, 3)
+
+
+@pytest.mark.parametrize("backend", [*FAST, "brute"])
 def test_square_lattice_2d(backend):
     pos = lattice(9, dim=2)
     for factor, expected in ((2.1, 12), (3.1, 28)):

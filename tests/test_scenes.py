@@ -546,7 +546,7 @@ def test_missing_and_malformed_files_name_the_path(tmp_path):
         (
             "dam",
             {"fluid_size": (41, 20, 20)},
-            r"fluid_size \(41, 20, 20\) does not fit in tank_size \(41, 21\)",
+            r"fluid_size \(41, 20, 20\) from fluid_lower \(1, 1, 1\) does not fit in tank_size \(41, 21\)",
         ),
         ("dam", {"rim": "round"}, "rim must be one of 'flat', 'stepped'"),
         ("dam", {"n_wall": 0}, "n_wall must be an integer >= 1, got 0"),
