@@ -23,7 +23,7 @@ from lagfluid.errors import LagfluidError, Terminated
 log = logging.getLogger("lagfluid")
 
 CONF_DIR = Path(__file__).resolve().parent / "conf"  # in the package: a wheel carries it (conf/ links here)
-TASKS = ("simulate", "generate", "train", "evaluate")
+TASKS = ("simulate", "generate", "train", "evaluate", "export")
 
 
 def _group_names(group: str) -> list[str]:
@@ -146,6 +146,10 @@ def dispatch(cfg: DictConfig) -> None:
         from lagfluid.evaluate import evaluate
 
         evaluate(cfg)
+    elif cfg.task == "export":
+        from lagfluid.export import export_task
+
+        export_task(cfg)
     else:  # guarded by check_command_line and the config
         raise LagfluidError(f"unknown task '{cfg.task}'; available: {', '.join(TASKS)}")
 

@@ -173,6 +173,10 @@ def simulate(cfg: DictConfig) -> dict[str, Any]:
             f"need steps >= 0 and write_every >= 1, got steps={cfg.steps}, write_every={cfg.write_every}"
         )
     # Everything that can fail before the first step does so here, before out_dir is touched.
+    if cfg.get("export") is not None:
+        from lagfluid.export import check_format
+
+        check_format(cfg.export)
     state = build_initial_state(cfg)
     simulator = build_simulator(cfg)
     state = at_simulator_time_step(state, simulator, cfg)
@@ -303,4 +307,8 @@ def simulate(cfg: DictConfig) -> dict[str, Any]:
         1e3 * metrics["time_per_step_median_s"],
         metrics["density_error"]["mean"],
     )
+    if cfg.get("export"):
+        from lagfluid.export import export_rollout
+
+        log.info("exported %s", export_rollout(out_dir / "rollout.h5", str(cfg.export), cfg))
     return metrics

@@ -29,6 +29,7 @@ from lagfluid.evaluate.figures import plot_errors, plot_pressure_slice
 from lagfluid.evaluate.model_run import run_model
 from lagfluid.evaluate.options import EvaluateOptions
 from lagfluid.evaluate.reference import key_hash, reference_rollout
+from lagfluid.export.animation import side_by_side
 from lagfluid.models.simulator import Simulator
 from lagfluid.outputs import begin, part_path, publish, write_json
 from lagfluid.physics.stages import SolverSettings
@@ -36,7 +37,7 @@ from lagfluid.state import ParticleState
 
 log = logging.getLogger(__name__)
 
-OUTPUTS = ("rollout.h5", "metrics.json", "error_vs_time.png", "pressure_slice.png")
+OUTPUTS = ("rollout.h5", "metrics.json", "error_vs_time.png", "pressure_slice.png", "side_by_side.gif")
 
 
 def reference_overrides(
@@ -153,8 +154,9 @@ def _compare_and_write(
             plot_errors(part_path(out_dir / "error_vs_time.png"), frames, title)
             slice_path = part_path(out_dir / "pressure_slice.png")
             slice_info = plot_pressure_slice(slice_path, model_path, reference_path, options, title)
+            side_by_side(model_path, reference_path, part_path(out_dir / "side_by_side.gif"))
         except Exception as err:  # the metrics matter more than the pictures
-            for name in ("error_vs_time.png", "pressure_slice.png"):
+            for name in ("error_vs_time.png", "pressure_slice.png", "side_by_side.gif"):
                 part_path(out_dir / name).unlink(missing_ok=True)
             log.warning("figures not written: %s: %s", type(err).__name__, err)
     metrics = {
