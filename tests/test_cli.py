@@ -443,3 +443,26 @@ def test_gravity_that_is_not_a_3_vector_is_refused_naming_it(value):
 def test_top_level_numbers_of_the_wrong_kind_are_refused_naming_them(override, message):
     with pytest.raises(ConfigError, match=re.escape(message)):
         dispatch(_compose(override))
+
+
+def test_a_sweep_composes_for_slurm_through_hydras_submitit_launcher():
+    """``-m hydra/launcher=submitit_slurm``: the cluster launcher is Hydra's plugin, composed here without a
+    cluster (submitting needs SLURM); our default (joblib) stays for a local multirun."""
+    from hydra import compose, initialize_config_dir
+
+    assert check_command_line(["-m", "hydra/launcher=submitit_slurm", "task=generate"]) is None
+    overrides = [
+        "hydra/launcher=submitit_slurm",
+        "hydra.launcher.partition=cpu",
+        "hydra.launcher.timeout_min=180",
+        "hydra.launcher.cpus_per_task=2",
+        "task=generate",
+        "threads=1",
+    ]
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        cfg = compose(config_name="config", overrides=overrides, return_hydra_config=True)
+        local = compose(config_name="config", return_hydra_config=True)
+    launcher = cfg.hydra.launcher
+    assert launcher._target_ == "hydra_plugins.hydra_submitit_launcher.submitit_launcher.SlurmLauncher"
+    assert (launcher.partition, launcher.timeout_min, launcher.cpus_per_task) == ("cpu", 180, 2)
+    assert local.hydra.launcher._target_.endswith("JoblibLauncher")
