@@ -57,6 +57,7 @@ from torch.utils.data import ConcatDataset
 from torch_geometric.loader import DataLoader
 
 import lagfluid
+from lagfluid import distributed
 from lagfluid.config import apply_threads, run_device
 from lagfluid.data.datasets import load_metadata
 from lagfluid.errors import ConfigError, LagfluidError
@@ -248,7 +249,9 @@ def train_one(cfg: DictConfig, trainable: Trainable, out_dir: Path) -> dict[str,
     ckpt_path, csv_path = out_dir / f"{kind}.pt", out_dir / f"{kind}_loss.csv"
 
     torch.manual_seed(int(cfg.seed))
-    device = run_device(cfg)
+    device = distributed.init(run_device(cfg))
+    rank, ranks = distributed.world()
+    main = distributed.is_main()
     net = trainable.build_network()
     optimizer = torch.optim.Adam(net.parameters(), lr=float(tcfg.lr_start), eps=adam_eps)
     start_step, elapsed, stats = 0, 0.0, None
@@ -281,7 +284,8 @@ def train_one(cfg: DictConfig, trainable: Trainable, out_dir: Path) -> dict[str,
         optimizer.load_state_dict(ckpt["optimizer"])
         torch.set_rng_state(ckpt["rng"])
         log.info("%s: resuming at iteration %d from %s", kind, start_step, ckpt_path)
-        _truncate_csv(csv_path, start_step)
+        if main:
+            _truncate_csv(csv_path, start_step)
 
     train_items, valid_items = trainable.datasets(data_dir)
     if extra_dirs:  # the union: each dataset's train split trains, data.out_dir's valid split validates
@@ -291,9 +295,11 @@ def train_one(cfg: DictConfig, trainable: Trainable, out_dir: Path) -> dict[str,
     # the batch order is a function of (seed, iteration) alone: a resumed run continues it exactly
     # own generators: a DataLoader iterator draws its base seed from the global RNG otherwise, which the
     # trainables' noise and pushforward draws (restored from the checkpoint) must not share
+    batches = EpochBatches(len(train_items), batch_size, int(cfg.seed), start=start_step)
     loader = DataLoader(
         KeyedItems(train_items),
-        batch_sampler=EpochBatches(len(train_items), batch_size, int(cfg.seed), start=start_step),
+        # under torchrun each rank takes its piece of the global batch (lagfluid.distributed)
+        batch_sampler=distributed.RankBatches(batches, rank, ranks) if ranks > 1 else batches,
         generator=torch.Generator().manual_seed(int(cfg.seed)),
     )
     valid_loader = (
@@ -322,9 +328,9 @@ def train_one(cfg: DictConfig, trainable: Trainable, out_dir: Path) -> dict[str,
 
     net.train()
     new_file = not csv_path.is_file()
-    csv_file = csv_path.open("a", newline="")
+    csv_file = csv_path.open("a", newline="") if main else open(os.devnull, "w")  # rank 0 writes the log
     writer = csv.writer(csv_file)
-    if new_file:
+    if new_file and main:
         writer.writerow(["iteration", "lr", "train_loss", "valid_loss", "seconds"])
 
     def save(step: int) -> None:
@@ -340,7 +346,9 @@ def train_one(cfg: DictConfig, trainable: Trainable, out_dir: Path) -> dict[str,
         }
         payload = network_payload(net, kind, options, step, meta, model=trainable.model)
         payload.update(optimizer=optimizer.state_dict(), rng=torch.get_rng_state())
-        save_checkpoint(ckpt_path, payload)
+        if main:
+            save_checkpoint(ckpt_path, payload)
+        distributed.barrier()  # no rank runs ahead of a checkpoint it may have to resume from
 
     step, window, t_last = start_step, [], time.perf_counter()
     bar = progress_bar(iterations, enabled=bool(cfg.progress), initial=start_step, desc=f"train {kind}")
@@ -361,16 +369,18 @@ def train_one(cfg: DictConfig, trainable: Trainable, out_dir: Path) -> dict[str,
                 for group in optimizer.param_groups:
                     group["lr"] = lr
                 pred, target = trainable.predict(net, batch)
-                loss = loss_fn(pred, target)
-                if not torch.isfinite(loss):
+                # torchrun: the gradient and the logged loss of the global batch (lagfluid.distributed)
+                loss, batch_loss = distributed.global_mean(loss_fn(pred, target), int(target.shape[0]))
+                if not torch.isfinite(batch_loss):
                     raise LagfluidError(
-                        f"{kind}: loss is {float(loss)} at iteration {step}; lower train.lr_start"
+                        f"{kind}: loss is {float(batch_loss)} at iteration {step}; lower train.lr_start"
                     )
                 optimizer.zero_grad(set_to_none=True)
                 loss.backward()
+                distributed.average_gradients(net)
                 optimizer.step()
                 step += 1
-                window.append(loss.item())
+                window.append(float(batch_loss))
                 bar.update(1)
                 now = time.perf_counter()
                 elapsed += now - t_last
@@ -379,7 +389,7 @@ def train_one(cfg: DictConfig, trainable: Trainable, out_dir: Path) -> dict[str,
                 if step % int(tcfg.log_every) == 0 or last:
                     valid = (
                         _valid_loss(trainable, net, valid_loader, int(tcfg.valid_batches), loss_fn)
-                        if step % int(tcfg.valid_every) == 0 or last
+                        if main and (step % int(tcfg.valid_every) == 0 or last)
                         else float("nan")
                     )
                     writer.writerow(
@@ -422,6 +432,11 @@ def train(cfg: DictConfig) -> list[dict[str, Any]]:
     names = list(trainables) if stage == "all" else [stage]
     onpolicy = OnPolicy.from_config(cfg, list(trainables))
     with_rounds = onpolicy.rounds > 0 and (stage == "all" or stage in onpolicy.trainables)
+    if with_rounds and distributed.world()[1] > 1:
+        raise ConfigError(
+            "train.onpolicy.rounds under torchrun: the rounds generate data in one process; run them without "
+            "torchrun (train.onpolicy.rounds=0 for the data-parallel part)"
+        )
     if with_rounds:  # a command that cannot remake the dataset's scenes fails now, not after the training
         check_same_scenes(cfg)
     apply_threads(cfg)
@@ -433,7 +448,7 @@ def train(cfg: DictConfig) -> list[dict[str, Any]]:
         last_round = run_rounds(cfg, onpolicy, out_dir, train_one)
         sources = {name: last_round for name in names}
     export_to = cfg.get("export_to")
-    if export_to:
+    if export_to and distributed.is_main():
         dest = Path(str(export_to))
         if not dest.parent.is_dir():  # a relative path run from elsewhere: not a stray lagfluid/weights here
             raise ConfigError(

@@ -1,4 +1,6 @@
-"""Plant each bug that once went unnoticed (issue 17, item 6), run the test meant to catch it, revert.
+"""Plant known bugs one at a time, run the test that must catch each, revert: CAUGHT or MISSED.
+
+The bugs that once went unnoticed (issue 17, item 6) and a few since.
 
 ``python tests/plant_bugs.py [name fragment ...]`` from the repository root prints CAUGHT or MISSED per bug;
 the source file is restored whatever happens. Not collected by pytest (a tool to check the tests, not a test).
@@ -62,6 +64,13 @@ PLANTS = [
         "kinetic_energy(mv, mass[id(model)])",
         "kinetic_energy(mv, mass[id(ref)])",
         "tests/test_metrics.py::test_kinetic_energy_of_runs_at_two_spacings_uses_each_runs_particle_mass",
+    ),
+    (
+        "torchrun ranks do not average their gradients",
+        "lagfluid/distributed.py",
+        "        dist.all_reduce(p.grad)\n        p.grad /= size",
+        "        pass  # planted",
+        "tests/test_distributed.py::test_two_processes_follow_one_process_with_the_same_global_batch",
     ),
     (
         "compiled cell search keeps pairs at exactly r",
