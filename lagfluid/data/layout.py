@@ -161,8 +161,16 @@ _REQUIRED = {
 }
 
 
-def check_scene_file(f: h5py.File, path: Path) -> None:
-    """Raise :class:`TrajectoryFileError` unless ``f`` (format already checked) has a scene file's layout."""
+def check_scene_file(f: h5py.File, path: Path, samples: bool = True) -> None:
+    """Raise :class:`TrajectoryFileError` unless ``f`` (format already checked) has a scene file's layout.
+
+    ``samples=False``: a trajectory dataset's scene (``lagfluid.data.convert``): the trajectory group only.
+    """
+    if not samples:
+        for name in _REQUIRED[GROUP]:
+            if GROUP not in f or name not in f[GROUP]:
+                raise TrajectoryFileError(f"{path} lacks the array '/{GROUP}/{name}'")
+        return
     for group, names in _REQUIRED.items():
         if group not in f:
             raise TrajectoryFileError(f"{path} lacks the group '/{group}': not a scene file of task=generate")
@@ -191,16 +199,31 @@ def check_scene_file(f: h5py.File, path: Path) -> None:
         raise TrajectoryFileError(f"{path}: arrays disagree in shape (T={t}, Nf={nf}, S={n})")
 
 
-def read_scene_info(path: str | os.PathLike) -> SceneInfo:
+def read_scene_info(path: str | os.PathLike, samples: bool = True) -> SceneInfo:
     """Open a scene file, check its layout and return its sizes and attributes.
+
+    ``samples=False``: the scene of a trajectory dataset (no ``/samples``: 0 samples, complete with its
+    trajectory).
 
     Raises:
         TrajectoryFileError: missing, unreadable, another format or version, a missing group or array.
     """
     path = Path(path)
     with open_lagfluid_file(path, "scene file") as f:
-        check_scene_file(f, path)
-        g, s = f[GROUP], f["samples"]
+        check_scene_file(f, path, samples)
+        g = f[GROUP]
+        if not samples:
+            return SceneInfo(
+                path=path,
+                attrs=dict(g.attrs),
+                n_fluid=int(g["position"].shape[1]),
+                n_boundary=int(g["boundary_position"].shape[0]),
+                frames=int(g["position"].shape[0]),
+                samples=0,
+                collision_samples=0,
+                complete=bool(g.attrs.get("complete", False)),
+            )
+        s = f["samples"]
         return SceneInfo(
             path=path,
             attrs=dict(g.attrs),
