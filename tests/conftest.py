@@ -36,6 +36,22 @@ def pytest_terminal_summary(terminalreporter, exitstatus: int, config: pytest.Co
         )
 
 
+@pytest.fixture(scope="session")
+def mesh_files(tmp_path_factory) -> tuple[Path, Path]:
+    """A box tank (1.05 x 0.45 x 1 m) and a box of fluid in its corner (0.4 x 0.4 x 0.5 m) as STL files."""
+    import numpy as np
+    import trimesh
+
+    root = tmp_path_factory.mktemp("meshes")
+    paths = []
+    for name, lower, upper in (("tank", [0, 0, 0], [1.05, 0.45, 1.0]), ("block", [0, 0, 0], [0.4, 0.4, 0.5])):
+        mesh = trimesh.creation.box(extents=np.subtract(upper, lower))
+        mesh.apply_translation(np.add(lower, upper) / 2)
+        mesh.export(root / f"{name}.stl")
+        paths.append(root / f"{name}.stl")
+    return paths[0], paths[1]
+
+
 @pytest.fixture
 def authors_dam_grid() -> Path:
     path = SHARED / "reference" / "fgn_original" / "grids" / "dam_col_4k.npz"

@@ -135,6 +135,9 @@ def test_every_model_and_scene_composes_and_instantiates(model, scene, request):
     extra = [f"scene.path={request.getfixturevalue('authors_dam_grid')}"] if scene == "file" else []
     if scene == "trajectory":
         extra.append(f"scene.path={request.getfixturevalue('trajectory_file')}")
+    if scene == "mesh":
+        tank, block = request.getfixturevalue("mesh_files")
+        extra += [f"scene.container={tank}", f"scene.fluid={block}"]
     if model in ("fgn", "hybrid", "fgn_gcn", "fgn_sage", "fgn_mlp"):
         weights = request.getfixturevalue("untrained_weights_of")("fgn" if model == "hybrid" else model)
         extra.append(f"model.weights={weights}")

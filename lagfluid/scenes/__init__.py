@@ -49,6 +49,7 @@ from lagfluid.scenes.library import (
     waterfall,
     waterfall_layout,
 )
+from lagfluid.scenes.mesh import mesh_scene
 from lagfluid.scenes.trajectory import (
     from_trajectory,
     trajectory_history,
@@ -82,6 +83,7 @@ __all__ = [
     "grid_bounds",
     "lattice_block",
     "load_grid",
+    "mesh_scene",
     "random_layout",
     "random_scene",
     "read_grid",
@@ -102,6 +104,7 @@ SCENES: dict[str, SceneBuilder] = {
     "random": random_scene,
     "file": from_file,
     "trajectory": from_trajectory,
+    "mesh": mesh_scene,
 }
 """Scene name -> builder ``(params=None, dtype=torch.float32, **options) -> ParticleState``."""
 
