@@ -1,0 +1,39 @@
+"""benchmarks.fgn_speed: every stage's time is attributed to op kinds, the dense layers' FLOPs counted."""
+
+from __future__ import annotations
+
+import csv
+
+from benchmarks.fgn_speed import kind_of, main
+
+
+def test_kinds_of_ops():
+    assert kind_of("aten::linear") == "linear" and kind_of("aten::addmm") == "sparse"
+    assert kind_of("aten::native_layer_norm") == "layer_norm" and kind_of("aten::silu") == "activation"
+    assert kind_of("aten::index_select") == "gather/scatter" and kind_of("aten::mul") == "elementwise"
+
+
+def test_a_profile_of_the_small_dam(tmp_path):
+    argv = [
+        "--scenes",
+        "dam_small",
+        "--warmup",
+        "1",
+        "--steps",
+        "1",
+        "--threads",
+        "1",
+        "--results",
+        str(tmp_path),
+    ]
+    assert main(argv) == 0
+    with open(tmp_path / "fgn_speed.csv") as f:
+        rows = list(csv.DictReader(f))
+    cells = {(r["stage"], r["kind"]): r for r in rows}
+    for stage in ("advection", "pressure_net"):
+        assert float(cells[(stage, "linear")]["mflop"]) > 0 and float(cells[(stage, "linear")]["ms"]) > 0
+        assert (stage, "sparse") in cells and float(
+            cells[(stage, "sparse")]["mflop"]
+        ) == 0  # not counted dense
+    assert float(cells[("neighbors", "compiled/python")]["ms"]) > 0  # the Numba filter, outside torch ops
+    assert "GFLOP/s" in (tmp_path / "fgn_speed.md").read_text()
