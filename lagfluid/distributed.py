@@ -67,16 +67,23 @@ class RankBatches(torch.utils.data.Sampler[list]):
         batches: a batch sampler of global batches (lists of keys).
         rank: this process's rank.
         size: the number of ranks.
+
+
+    A global batch smaller than the number of ranks (an epoch's last) leaves some ranks without items: such
+    a rank gets the batch's first item as padding and :attr:`padding` is True while it is the current piece,
+    so that the training loop weighs it 0 (every rank must take part in each all-reduce).
     """
 
     def __init__(self, batches: torch.utils.data.Sampler[list], rank: int, size: int) -> None:
         self.batches, self.rank, self.size = batches, rank, size
+        self.padding = False
 
     def __iter__(self) -> Iterator[list]:
         for batch in self.batches:
             n = len(batch)
             lo, hi = n * self.rank // self.size, n * (self.rank + 1) // self.size
-            yield batch[lo:hi]
+            self.padding = hi <= lo
+            yield batch[:1] if self.padding else batch[lo:hi]
 
 
 def global_mean(loss: Tensor, rows: int) -> tuple[Tensor, Tensor]:
@@ -92,6 +99,13 @@ def global_mean(loss: Tensor, rows: int) -> tuple[Tensor, Tensor]:
     dist.all_reduce(counts)
     total = float(counts[0])
     return loss * (rows * size / total), (counts[1] / counts[0]).to(loss.dtype)
+
+
+def finish() -> None:
+    """Leave torchrun's process group (after the last collective of the run)."""
+    if dist.is_available() and dist.is_initialized():
+        dist.barrier()
+        dist.destroy_process_group()
 
 
 def average_gradients(net: nn.Module) -> None:

@@ -296,10 +296,11 @@ def train_one(cfg: DictConfig, trainable: Trainable, out_dir: Path) -> dict[str,
     # own generators: a DataLoader iterator draws its base seed from the global RNG otherwise, which the
     # trainables' noise and pushforward draws (restored from the checkpoint) must not share
     batches = EpochBatches(len(train_items), batch_size, int(cfg.seed), start=start_step)
+    # under torchrun each rank takes its piece of the global batch (lagfluid.distributed)
+    pieces = distributed.RankBatches(batches, rank, ranks) if ranks > 1 else None
     loader = DataLoader(
         KeyedItems(train_items),
-        # under torchrun each rank takes its piece of the global batch (lagfluid.distributed)
-        batch_sampler=distributed.RankBatches(batches, rank, ranks) if ranks > 1 else batches,
+        batch_sampler=pieces or batches,
         generator=torch.Generator().manual_seed(int(cfg.seed)),
     )
     valid_loader = (
@@ -370,7 +371,8 @@ def train_one(cfg: DictConfig, trainable: Trainable, out_dir: Path) -> dict[str,
                     group["lr"] = lr
                 pred, target = trainable.predict(net, batch)
                 # torchrun: the gradient and the logged loss of the global batch (lagfluid.distributed)
-                loss, batch_loss = distributed.global_mean(loss_fn(pred, target), int(target.shape[0]))
+                rows = 0 if pieces is not None and pieces.padding else int(target.shape[0])
+                loss, batch_loss = distributed.global_mean(loss_fn(pred, target), rows)
                 if not torch.isfinite(batch_loss):
                     raise LagfluidError(
                         f"{kind}: loss is {float(batch_loss)} at iteration {step}; lower train.lr_start"
@@ -464,4 +466,5 @@ def train(cfg: DictConfig) -> list[dict[str, Any]]:
                 source, export_to, kinds=[name], ranges={name: trained} if trained else None
             )
             log.info("%s: exported to %s", name, written[0])
+    distributed.finish()
     return summaries

@@ -184,5 +184,23 @@ def test_what_cannot_convert_is_named(tmp_path, lagrangebench):
     assert not (tmp_path / "out2").exists()  # nothing half-written is left under the name
     with pytest.raises(ConversionError, match=r"exists: give a new folder"):
         convert(lagrangebench, lagrangebench)
+    periodic = tmp_path / "periodic"
+    periodic.mkdir()
+    (periodic / "train.h5").write_bytes((lagrangebench / "train.h5").read_bytes())
+    meta = json.loads((lagrangebench / "metadata.json").read_text())
+    (periodic / "metadata.json").write_text(
+        json.dumps({**meta, "periodic_boundary_conditions": [True, False, True]})
+    )
+    with pytest.raises(ConversionError, match=r"periodic along \[True, False, True\]"):
+        convert(periodic, tmp_path / "out3")
+    lid = tmp_path / "lid"
+    lid.mkdir()
+    (lid / "metadata.json").write_text(json.dumps(meta))
+    with h5py.File(lagrangebench / "train.h5") as f, h5py.File(lid / "train.h5", "w") as g:
+        ptype = f["00000/particle_type"][()]
+        ptype[-1] = 2  # LagrangeBench's moving wall (a lid)
+        g["00000/particle_type"], g["00000/position"] = ptype, f["00000/position"][()]
+    with pytest.raises(ConversionError, match=r"particle types \[2\] .* static walls \(1\) only"):
+        convert(lid, tmp_path / "out4")
     (tmp_path / "empty").mkdir()
     assert main([str(tmp_path / "empty"), str(tmp_path / "x")]) == 1

@@ -80,6 +80,17 @@ def test_bad_meshes_are_named(tmp_path, tank_and_block):
     outside = _box(tmp_path / "outside.stl", [0.5, 0, 0], [1.5, 0.2, 0.2])
     with pytest.raises(SceneError, match=r"outside\.stl .* reaches outside the container"):
         build_scene("mesh", container=tank, fluid=outside)
+    # a concave tank, an L extruded 1 m up: fluid in its notch is inside its bounding box, outside the tank
+    corners = np.array([[0, 0], [1, 0], [1, 0.4], [0.5, 0.4], [0.5, 1], [0, 1], [0, 0.4]], dtype=float)
+    triangles = np.array([[0, 1, 2], [0, 2, 3], [0, 3, 6], [6, 3, 4], [6, 4, 5]])
+    ell = trimesh.creation.extrude_triangulation(corners, triangles, height=1.0)
+    assert ell.is_watertight
+    ell.export(tmp_path / "ell.stl")
+    notch = _box(tmp_path / "notch.stl", [0.6, 0.5, 0.0], [0.9, 0.9, 0.3])
+    with pytest.raises(
+        SceneError, match=r"lattice sites of the fluid .*notch\.stl lie outside the container"
+    ):
+        build_scene("mesh", container=str(tmp_path / "ell.stl"), fluid=notch)
     millimetres = _box(tmp_path / "mm.stl", [0, 0, 0], [1050, 450, 2000])
     with pytest.raises(SceneError, match=r"is 2000 m across at scale 1.0 .* scene\.scale=0\.001"):
         build_scene("mesh", container=millimetres, fluid=block)

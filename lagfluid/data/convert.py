@@ -18,8 +18,10 @@ The source's format is recognised from its folder:
   GNS trains on it (:class:`~lagfluid.data.datasets.TrajectoryWindows`); the stage samples FGN learns from
   come from an MPS run only, so the other datasets refuse it by name.
 
-Only 3D data converts (lagfluid's models are 3D; a 2D set is refused naming its ``dim``), and only a static
-boundary (a moving wall is refused). Particle types: LagrangeBench 0 fluid, 1-3 walls; DeepMind 3
+Only 3D data converts (lagfluid's models are 3D; a 2D set is refused naming its ``dim``), only walled
+domains (a periodic one is refused: wrapped positions would read as jumps) and only a static boundary (a
+moving wall, a rigid body are refused). LagrangeBench stores the body force's magnitude only: it is written
+as gravity along -z. Particle types: LagrangeBench 0 fluid, 1-3 walls; DeepMind 3
 (kinematic) boundary, every other type fluid; lagfluid 1 fluid, 2 wall, 3 dummy.
 """
 
@@ -143,6 +145,10 @@ def read_lagfluid(src: Path, dummies: bool = False) -> Dataset:
     for split in SPLITS:
         for name in meta["splits"].get(split, []):
             run = read_trajectory(src / name)
+            # the uniformly spaced frames: a run whose steps are no multiple of sample_every also stored its
+            # last step, closer to the one before
+            uniform = int(meta["steps"]) // int(meta["sample_every"]) + 1
+            run["position"] = run["position"][:uniform]
             keep = (run["boundary_type"] == ParticleType.WALL) | (
                 dummies & (run["boundary_type"] == ParticleType.DUMMY)
             )
@@ -180,6 +186,12 @@ def read_lagrangebench(src: Path) -> Dataset:
     """A LagrangeBench dataset (their HDF5 layout and metadata keys)."""
     meta = json.loads((src / METADATA_FILE).read_text())
     _check_3d(int(meta.get("dim", 3)), src)
+    periodic = [bool(p) for p in meta.get("periodic_boundary_conditions", [])]
+    if any(periodic):
+        raise ConversionError(
+            f"{src} is periodic along {periodic} (periodic_boundary_conditions): lagfluid's domains are "
+            "walled; its wrapped positions would read as jumps of a box length"
+        )
     splits: dict[str, list[Trajectory]] = {s: [] for s in SPLITS}
     for split in SPLITS:
         path = src / f"{split}.h5"
@@ -188,6 +200,12 @@ def read_lagrangebench(src: Path) -> Dataset:
         with h5py.File(path, "r") as f:
             for key in sorted(f):
                 ptype = f[key]["particle_type"][()]
+                unknown = sorted(set(np.unique(ptype).tolist()) - {LB_FLUID, LB_WALL})
+                if unknown:
+                    raise ConversionError(
+                        f"{path}:{key} has particle types {unknown} (LagrangeBench: 2 moving wall, 3 rigid "
+                        "body); lagfluid converts fluid (0) and static walls (1) only"
+                    )
                 splits[split].append(Trajectory(f[key]["position"][()].astype(np.float32), ptype == LB_FLUID))
     write_every = int(meta.get("write_every", 1))
     bounds = np.asarray(meta["bounds"], dtype=np.float64).T if "bounds" in meta else None

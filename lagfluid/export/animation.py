@@ -132,10 +132,13 @@ def animate(
         movie = animation.FuncAnimation(fig, draw, frames=frames, blit=False)
         out.parent.mkdir(parents=True, exist_ok=True)
         tmp = out.with_name(f"{out.stem}.part{out.suffix}")
-        movie.save(tmp, writer=writer)
-        tmp.replace(out)
-        plt.close(fig)
+        try:
+            movie.save(tmp, writer=writer)
+            tmp.replace(out)
+        finally:
+            tmp.unlink(missing_ok=True)  # a failed encoding leaves no half file
     finally:
+        plt.close("all")
         for f in files:
             f.close()
     return out

@@ -1,7 +1,7 @@
 """A rollout as a ParaView time series: ``.vtu`` per frame and a ``.pvd`` collection, written by pyevtk.
 
 The fluid of frame ``k`` is ``frame_<k>.vtu`` (unstructured points; point data ``velocity`` (3), ``speed``,
-``pressure``, ``number_density`` (n/n0 at the solver's ``re_density``, boundary included) and
+``pressure``, ``number_density`` (n/n0 at the run's ``solver.re_density``, boundary included) and
 ``particle_type``); the static boundary is ``boundary.vtu`` (``particle_type``: 2 wall, 3 dummy), listed
 once as part 1 of the collection at the first time (ParaView's PVD reader shows a part's latest file at or
 before the current time, so the boundary stays at every time). ``rollout.pvd`` lists the frames with their
@@ -14,6 +14,8 @@ from pathlib import Path
 
 import numpy as np
 import torch
+import yaml
+from omegaconf import OmegaConf
 from pyevtk.hl import pointsToVTK
 from pyevtk.vtk import VtkGroup
 
@@ -24,11 +26,24 @@ from lagfluid.physics.stages import SolverSettings, lattice_constants
 from lagfluid.state import ParticleType
 
 
+def run_settings(config: str | None) -> SolverSettings:
+    """The solver settings of the run whose config (YAML, the rollout's ``config`` attribute) is given."""
+    if not config:
+        return SolverSettings()
+    solver = (yaml.safe_load(config) or {}).get("solver")
+    return SolverSettings.from_config(OmegaConf.create(solver)) if solver else SolverSettings()
+
+
 def number_density_ratio(
-    fluid: np.ndarray, boundary: np.ndarray, boundary_type: np.ndarray, l0: float, dim: int = 3
+    fluid: np.ndarray,
+    boundary: np.ndarray,
+    boundary_type: np.ndarray,
+    l0: float,
+    dim: int = 3,
+    settings: SolverSettings | None = None,
 ) -> np.ndarray:
-    """n/n0 of every fluid particle (Nf,), boundary particles counted, at the solver's ``re_density``."""
-    settings = SolverSettings()
+    """n/n0 of every fluid particle (Nf,), boundary particles counted, at the run's ``re_density``."""
+    settings = settings or SolverSettings()
     re = settings.re_density * l0
     pos = torch.from_numpy(np.concatenate([fluid, boundary]).astype(np.float64))
     ptype = torch.cat(
@@ -57,6 +72,7 @@ def write_paraview(rollout: Path, out_dir: Path) -> Path:
     with open_lagfluid_file(rollout) as f:
         g = f["00000"]
         l0, dim = float(g.attrs["l0"]), int(g.attrs.get("dim", 3))
+        settings = run_settings(g.attrs.get("config"))
         boundary, btype = g["boundary_position"][()], g["boundary_type"][()]
         times = g["time"][()]
         if len(boundary):
@@ -70,7 +86,7 @@ def write_paraview(rollout: Path, out_dir: Path) -> Path:
                 "velocity": tuple(np.ascontiguousarray(v[:, i]) for i in range(3)),
                 "speed": np.linalg.norm(v, axis=1),
                 "pressure": p.astype(np.float64),
-                "number_density": number_density_ratio(pos, boundary, btype, l0, dim),
+                "number_density": number_density_ratio(pos, boundary, btype, l0, dim, settings),
                 "particle_type": np.full(len(pos), int(ParticleType.FLUID), dtype=np.int32),
             }
             _points(out_dir / f"frame_{k:05d}", pos, data)

@@ -120,9 +120,17 @@ def mesh_scene(
     axes = [np.arange(lower[i], upper[i] + 1) * l0 for i in range(3)]
     sites = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
     d = _signed_distance(tank, sites)
-    in_fluid = d >= 0.5 * l0
     # sites on the fluid mesh's surface count (a quarter spacing of tolerance): a 0.3 m block holds 6 layers
-    in_fluid[in_fluid] = _signed_distance(water, sites[in_fluid]) >= -0.25 * l0
+    near = np.all((sites > water.bounds[0] - l0) & (sites < water.bounds[1] + l0), axis=1)
+    in_water = np.zeros(len(sites), dtype=bool)
+    in_water[near] = _signed_distance(water, sites[near]) >= -0.25 * l0
+    lost = in_water & (d < -0.5 * l0)  # fluid beyond the container's wall layer: outside it
+    if lost.any():
+        raise SceneError(
+            f"scene 'mesh': {int(lost.sum())} lattice sites of the fluid {fluid} lie outside the container "
+            f"{container} (e.g. at {sites[lost][0].round(4).tolist()} m)"
+        )
+    in_fluid = in_water & (d >= 0.5 * l0)
     wall = (d < 0.5 * l0) & (d > -(n_wall - 0.5) * l0)
     dummy = (d <= -(n_wall - 0.5) * l0) & (d > -(shell - 0.5) * l0)
     for solid in solids:  # distances only near the solid: beyond its shell a site is unaffected
