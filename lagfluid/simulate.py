@@ -196,12 +196,13 @@ def simulate(cfg: DictConfig) -> dict[str, Any]:
     checkpoint.memory = getattr(simulator, "rollout_memory", None)
     record: dict[str, Any] = {"step_seconds": [], "stage_seconds": {}, "info": {}}
     wall_before = 0.0
-    start_state = state
+    start_state = state  # a trajectory start's state already counts the steps before its frame
     if bool(cfg.resume):  # checked before any file is touched, as everything else
         start_state, before, memory, written, extra = checkpoint.load(state)
-        if start_state.step > int(cfg.steps):
+        if start_state.step - state.step > int(cfg.steps):
             raise RolloutError(
-                f"resume=true: the run in {out_dir} is at step {start_state.step}, past steps={cfg.steps}"
+                f"resume=true: the run in {out_dir} is at step {start_state.step - state.step}, past "
+                f"steps={cfg.steps}"
             )
         if simulator.history_length:  # the history the run had (constants stay the start's, see module doc)
             simulator.reset(start_state, before)
@@ -249,14 +250,14 @@ def simulate(cfg: DictConfig) -> dict[str, Any]:
         _, record = rollout(
             simulator,
             start_state,
-            int(cfg.steps) - start_state.step,
+            int(cfg.steps) - (start_state.step - state.step),
             guard=guard,
             write_every=write_every,
             on_frame=on_frame,
             on_step=checkpoint.on_step,
             progress=bool(cfg.progress),
             reset=False,
-            step_offset=start_state.step,
+            step_offset=start_state.step - state.step,
             record=record,
         )
     except BaseException as err:  # a guard stop, a bug, Ctrl-C: the file says the run is incomplete and why

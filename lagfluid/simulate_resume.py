@@ -100,10 +100,12 @@ class RolloutCheckpoint:
         self.history_length = int(history_length)
         self.before: deque[ParticleState] = deque(maxlen=max(self.history_length, 1))
         self.memory: Any = None  # the simulator's rollout_memory(), if it has one (see Simulator)
+        self.stepped = False  # a step was taken in this process: the start itself is never saved
         self.last_save = time.perf_counter()
 
     def on_step(self, before: ParticleState, after: ParticleState, fields: Any) -> None:
         """Remember the states before the current one (a rollout ``on_step`` hook)."""
+        self.stepped = True
         if self.history_length:
             self.before.append(before)
 
@@ -115,7 +117,7 @@ class RolloutCheckpoint:
             frames: frames in the trajectory file, this one included.
             extra: what the task restores besides the state (the record, its metrics' state).
         """
-        if state.step == 0 or len(self.before) < self.history_length:
+        if not self.stepped or len(self.before) < self.history_length:  # never the start itself
             return
         if time.perf_counter() - self.last_save < self.every_s:
             return

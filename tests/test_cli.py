@@ -256,10 +256,19 @@ def test_sigterm_stops_a_rollout_like_ctrl_c_keeping_its_outputs_and_reason(tmp_
         stderr=subprocess.PIPE,
         text=True,
     )
+
+    def frames_written() -> int:
+        import h5py
+
+        try:
+            with h5py.File(out / "rollout.part.h5.part", "r", locking=False) as f:
+                return int(f["00000/time"].shape[0])
+        except (OSError, KeyError):  # not there yet, or caught mid-write
+            return 0
+
     deadline = time.monotonic() + 120
-    while not list(out.glob("rollout*part*")) and time.monotonic() < deadline:  # the rollout has begun
-        time.sleep(0.2)
-    time.sleep(1.0)
+    while frames_written() < 2 and time.monotonic() < deadline:  # the rollout has begun (a loaded machine
+        time.sleep(0.2)  # may take seconds between creating the file and its first frame)
     proc.send_signal(signal.SIGTERM)
     _, err = proc.communicate(timeout=120)
     assert proc.returncode == 128 + signal.SIGTERM
