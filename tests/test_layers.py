@@ -29,6 +29,7 @@ LAYERS: dict[str, tuple[str, ...]] = {
         "lagfluid.outputs",  # a run's output files, replaced together
         "lagfluid.simulate",
         "lagfluid.simulate.*",
+        "lagfluid.simulate_resume",  # task=simulate's resume=true checkpoints
         "lagfluid.generate",
         "lagfluid.generate.*",
         "lagfluid.train",
@@ -37,6 +38,8 @@ LAYERS: dict[str, tuple[str, ...]] = {
         "lagfluid.evaluate*",
         "lagfluid.tables*",
         "lagfluid.export",
+        "lagfluid.export.*",  # task=export: ParaView series and animations of rollout files
+        "lagfluid.distributed",  # task=train under torchrun
         "lagfluid.tasks",
         "lagfluid.tasks.*",
     ),
@@ -59,7 +62,8 @@ LAYERS: dict[str, tuple[str, ...]] = {
         "lagfluid.integrate",
     ),
     # plugin_configs: the config-resolver lagfluid/__init__ registers (stdlib and errors only)
-    "base": ("lagfluid", "lagfluid.state", "lagfluid.errors", "lagfluid.plugin_configs"),
+    # progress: the rollout's and the trainer's bar or log lines (tqdm and logging only)
+    "base": ("lagfluid", "lagfluid.state", "lagfluid.errors", "lagfluid.plugin_configs", "lagfluid.progress"),
 }
 
 # What each layer may import besides its own modules.
