@@ -439,6 +439,8 @@ def plot_axis(
     import matplotlib.pyplot as plt
 
     fig, panels = plt.subplots(1, 2, figsize=(11, 4.2))
+    for panel in panels:  # up to 20 simulators, each its own colour
+        panel.set_prop_cycle(color=plt.get_cmap("tab20").colors)
     xs = {v: (float(v) if axis.log_scale else i) for i, v in enumerate(values)}
     for sim in order:
         mine = [r for r in rows if r["axis"] == axis.key and r["simulator"] == sim and r["value"] in xs]
@@ -568,7 +570,7 @@ def run_sweep(profile: ExtremesProfile, args: argparse.Namespace) -> dict[str, A
         flush=True,
     )
     runs = []
-    for axis in axes:
+    for axis in [] if args.redraw else axes:  # --redraw: the tables and plots of the csv, no run
         for value in profile.values[axis.key]:
             for entry in chosen:
                 try:
@@ -640,6 +642,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--runs-dir", default="runs/extremes", help="rollouts and MPS references")
     parser.add_argument("--results", default=str(RESULTS))
     parser.add_argument("--readme", action="store_true", help="rewrite the README's table from this profile")
+    parser.add_argument("--redraw", action="store_true", help="only redraw tables and plots from the csv")
     parser.add_argument("--readme-path", default=str(REPO / "README.md"))
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")

@@ -126,3 +126,11 @@ def test_a_quick_sweep_writes_verdicts_tables_plots_and_the_readme_section(tmp_p
     assert again[("dt", "0.04", "fgn")]["date"] == rows[("dt", "0.04", "fgn")]["date"]
     assert "8 rows" not in (tmp_path / "extremes_quick.md").read_text()
     assert "6 rows of other axes or simulators kept" in (tmp_path / "extremes_quick.md").read_text()
+    # --redraw: the tables and plots again from the csv, nothing run
+    (tmp_path / "extremes_quick_dt.png").unlink()
+    assert main([*argv[:1], "--redraw", *argv[7:]]) == 0
+    with open(tmp_path / "extremes_quick.csv") as f:
+        assert {(r["axis"], r["value"], r["simulator"]) for r in csv.DictReader(f)} == set(rows)
+    assert (tmp_path / "extremes_quick_dt.png").is_file() and not (
+        tmp_path / "runs" / "extremes_redraw"
+    ).exists()
