@@ -166,7 +166,7 @@ def test_scenes_are_sorted_overlap_free_and_inside_bounds(name, options):
 
 
 def test_scene_registry_names():
-    assert set(SCENES) == {"dam", "dam_large", "waterfall", "random", "file", "trajectory"}
+    assert set(SCENES) == {"dam", "dam_large", "waterfall", "random", "file", "trajectory", "mesh"}
 
 
 # ------------------------------------------------------------------------------------------ obstacles
@@ -530,7 +530,7 @@ def test_missing_and_malformed_files_name_the_path(tmp_path):
 @pytest.mark.parametrize(
     ("name", "options", "message"),
     [
-        ("nope", {}, "unknown scene 'nope'; available: dam, dam_large, file, random, trajectory, waterfall"),
+        ("nope", {}, "unknown scene 'nope'; available: dam, dam_large, file, mesh, random, trajectory, waterfall"),
         (
             "dam",
             {"fluid_szie": (1, 1, 1)},
