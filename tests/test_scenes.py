@@ -530,7 +530,11 @@ def test_missing_and_malformed_files_name_the_path(tmp_path):
 @pytest.mark.parametrize(
     ("name", "options", "message"),
     [
-        ("nope", {}, "unknown scene 'nope'; available: dam, dam_large, file, mesh, random, trajectory, waterfall"),
+        (
+            "nope",
+            {},
+            "unknown scene 'nope'; available: dam, dam_large, file, mesh, random, trajectory, waterfall",
+        ),
         (
             "dam",
             {"fluid_szie": (1, 1, 1)},
