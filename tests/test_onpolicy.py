@@ -91,3 +91,26 @@ def test_the_policy_is_part_of_each_files_fingerprint(untrained_weights):
 def test_a_bad_policy_is_refused_before_any_simulation(overrides, message):
     with pytest.raises(ConfigError, match=message):
         DataSpec.from_config(_compose(*TINY, *overrides))
+
+
+def test_a_policy_that_leaves_the_domain_keeps_the_states_it_visited(tmp_path):
+    """DAgger data: the model's trajectory up to the guard's stop, each sample labelled, is a shorter scene.
+
+    The ground truth stopping stays an error (tests/test_data.py); a learned policy stopping is what the
+    rounds are there to correct. Here the guard's Courant limit is so low that every scene stops before its
+    8 steps: 0.005 is |v| = 0.125 m/s, above the initial speeds (< 0.1 m/s), below 7 steps of free fall.
+    """
+    out = tmp_path / "stopped"
+    limit = "solver.guard.max_courant=0.005"
+    generate(_compose(*TINY, "data.policy=model", "model=fgn", limit, f"data.out_dir={out}"))
+    meta = json.loads((out / "metadata.json").read_text())
+    for scene in meta["scenes"]:
+        with h5py.File(out / scene["file"], "r") as f:
+            attrs = dict(f[GROUP].attrs)
+            assert attrs["complete"] and 0 < attrs["stopped_at_step"] < 8  # data=tiny asks 8 steps
+            assert "Courant number" in attrs["stop_reason"]
+            # a sample every 2 steps, each of a step that was accepted: those before the stop
+            assert f["samples/step"].shape[0] == (attrs["stopped_at_step"] + 1) // 2
+    assert len(AdvectionSamples(out, "train")) > 0
+    with pytest.raises(LagfluidError, match=r"scene\(s\) failed: .*stopped: step \d+: Courant number"):
+        generate(_compose(*TINY, limit, f"data.out_dir={tmp_path / 'mps'}"))

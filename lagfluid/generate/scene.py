@@ -106,18 +106,35 @@ def generate_scene(cfg: DictConfig, spec: DataSpec, index: int) -> Path:
                 samples.append(before.step, fields)
             samples.after_step(after.step, after.pos[:nf])
 
-        _, record = rollout(
-            sim,
-            state,
-            spec.steps,
-            guard=guard,
-            write_every=every,
-            on_frame=writer.append_state,
-            on_step=keep_sample,
-            record_when=lambda s: s.step % every == 0,  # recording costs copies: only the sampled steps
-            progress=bool(cfg.progress),
-            reset=False,  # reset above: its constants are in the file's attributes
-        )
+        stopped: dict[str, Any] = {}
+        try:
+            _, record = rollout(
+                sim,
+                state,
+                spec.steps,
+                guard=guard,
+                write_every=every,
+                on_frame=writer.append_state,
+                on_step=keep_sample,
+                record_when=lambda s: s.step % every == 0,  # recording costs copies: only the sampled steps
+                progress=bool(cfg.progress),
+                reset=False,  # reset above: its constants are in the file's attributes
+            )
+        except RolloutError as err:
+            if spec.policy is None:  # the ground truth must not stop: the scene is an error
+                raise
+            # A model that leaves the domain is what on-policy rounds correct: the states it visited up to
+            # there (each labelled by the exact stages) are kept as a shorter scene.
+            record = getattr(err, "record", {"step_seconds": [0.0], "info": {}})
+            last = getattr(err, "state", state)
+            stopped = {"stopped_at_step": int(last.step), "stop_reason": str(err)}
+            log.warning(
+                "scene %d: the policy stopped at step %d (%s); its %d steps are kept",
+                index,
+                last.step,
+                str(err).split(";")[0],
+                last.step,
+            )
         sim_seconds = time.perf_counter() - start
         collisions = write_collision_samples(
             samples.group.create_group("collision"), spec, settings, params, seed
@@ -126,11 +143,12 @@ def generate_scene(cfg: DictConfig, spec: DataSpec, index: int) -> Path:
         writer.group.attrs.update(
             wall_time_s=time.perf_counter() - start,
             simulation_time_s=sim_seconds,
-            step_time_median_s=median(record["step_seconds"]),
+            step_time_median_s=median(record["step_seconds"] or [0.0]),
             ppe_iterations_median=median(record["info"].get("ppe_iterations", [0.0])),
             collision_samples=collisions,
+            **stopped,
         )
-        writer.close(complete=True)
+        writer.close(complete=True, stop_reason=stopped.get("stop_reason"))
         failed.unlink(missing_ok=True)  # a failure of an earlier run with other settings
     except RolloutError as err:
         writer.file.close()
@@ -146,9 +164,9 @@ def generate_scene(cfg: DictConfig, spec: DataSpec, index: int) -> Path:
     log.info(
         "scene %d: %d steps in %.0f s (%.0f ms/step median), %d + %d collision samples -> %s",
         index,
-        spec.steps,
+        stopped.get("stopped_at_step", spec.steps),
         time.perf_counter() - start,
-        1e3 * median(record["step_seconds"]),
+        1e3 * median(record["step_seconds"] or [0.0]),
         spec.num_samples,
         collisions,
         path,
