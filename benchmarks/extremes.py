@@ -22,8 +22,9 @@ through :class:`benchmarks.tables.bench.Bench`, so the numbers are the tables'. 
 * **degraded**: it completed beyond either bound;
 * **stopped**: the rollout guard stopped it at step k (its reason: NaN, a particle leaving the domain, the
   Courant limit), the start included;
-* **refused**: the configuration was refused before the first step (the message says why), or the MPS
-  reference itself stopped (a learned model then has nothing to be compared with);
+* **refused**: the configuration was refused before the first step (the message says why);
+* **no reference**: the MPS reference at that setting stopped (MPS's own row says where), so a learned
+  model has nothing to be compared with;
 * **n/a**: the axis does not apply (a model that steps by its training frames' spacing on the dt axis).
 
 MPS rows are compared with MPS at the same setting, so off the dt axis they can only be stable or stopped;
@@ -66,7 +67,8 @@ DEGRADED_CHAMFER_L0 = 0.5
 the shipped FGN's 1 s dam: 0.37 l0, ``benchmarks/results/fgn_recipe.md``)."""
 DEGRADED_DENSITY_FACTOR = 3.0
 """... or beyond this many times the reference's mean density error (the shipped FGN's dam: 1.28)."""
-VERDICTS = ("stable", "degraded", "stopped", "refused", "n/a")
+VERDICTS = ("stable", "degraded", "stopped", "refused", "no reference", "n/a")
+NO_REFERENCE = "the MPS reference stopped"
 README_START, README_END = "<!-- extremes:start -->", "<!-- extremes:end -->"
 CORRECTED = "mps_corrected"
 
@@ -250,8 +252,11 @@ def verdict(run: Run, l0: float) -> tuple[str, str]:
         return "n/a", str(run.info["not_applicable"])
     if not run.ok:
         error = run.error.split(": ", 1)[-1]
-        if "the MPS reference stopped" in error and run.sim.key in (GROUND_TRUTH, CORRECTED):
-            return "stopped", short_reason(error.split("nothing to compare with: ", 1)[-1])
+        if NO_REFERENCE in error:  # MPS's own stop; a learned model then has nothing to be compared with
+            reason = short_reason(error.split("nothing to compare with: ", 1)[-1])
+            if run.sim.key in (GROUND_TRUTH, CORRECTED):
+                return "stopped", reason
+            return "no reference", f"MPS stopped: {reason}"
         return "refused", error
     m = run.metrics or {}
     if not m.get("complete"):
@@ -281,23 +286,29 @@ def stop_step(reason: str) -> int | None:
     return int(found[1]) if found else None
 
 
+WORDS = {"stable": "stable", "degraded": "degraded", "stopped": "stops", "refused": "refused"}
+WORDS["no reference"] = "no MPS reference"
+
+
 def holds(axis: Axis, cells: Sequence[tuple[Any, str]]) -> str:
-    """One line of where a simulator holds on ``axis``: its stable values, then where it degrades, stops.
+    """One line of where a simulator holds on ``axis``: its runs of equal verdicts, in the axis's order.
+
+    ``stable 0.5 ms..2 ms; stops 4 ms..20 ms``: each segment is consecutive values of one verdict, so a range
+    never spans a value of another verdict; n/a values are left out.
 
     Args:
         axis: the axis.
         cells: ``(value, verdict)`` in the axis's order.
     """
-    parts = []
-    for kind, word in (
-        ("stable", "stable"),
-        ("degraded", "degraded"),
-        ("stopped", "stops"),
-        ("refused", "refused"),
-    ):
-        values = [axis.show(v) for v, got in cells if got == kind]
-        if values:
-            parts.append(f"{word} {values[0]}" + (f"..{values[-1]}" if len(values) > 1 else ""))
+    segments: list[tuple[str, list[str]]] = []
+    for value, got in cells:
+        if got not in WORDS:
+            continue
+        if segments and segments[-1][0] == got:
+            segments[-1][1].append(axis.show(value))
+        else:
+            segments.append((got, [axis.show(value)]))
+    parts = [f"{WORDS[k]} {v[0]}" + (f"..{v[-1]}" if len(v) > 1 else "") for k, v in segments]
     return "; ".join(parts) or "n/a"
 
 
@@ -403,7 +414,7 @@ def axis_markdown(axis: Axis, values: Sequence[Any], rows: Sequence[dict[str, An
         {
             f"- {r['simulator']} at {axis.show(r['value'])}: {r['verdict']}: {r['reason']}"
             for r in by.values()
-            if r["verdict"] in ("stopped", "refused", "degraded") and r["reason"]
+            if r["verdict"] in ("stopped", "refused", "degraded", "no reference") and r["reason"]
         }
     )
     text = f"### {axis.label}\n\n" + md_table(["simulator", *(axis.show(v) for v in values)], table)
@@ -459,7 +470,7 @@ def plot_axis(
                     mfc=line.get_color() if filled else "none",
                 )
             for r in mine:
-                if r["verdict"] in ("stopped", "refused"):
+                if r["verdict"] in ("stopped", "refused", "no reference"):
                     panel.plot(
                         xs[r["value"]],
                         1.0,
@@ -484,7 +495,7 @@ def plot_axis(
     panels[1].axhline(DEGRADED_DENSITY_FACTOR, color="grey", ls="--", lw=0.8)
     panels[0].legend(fontsize=7, ncol=2)
     fig.suptitle(
-        f"{axis.label}: o stable, open square degraded, x at the top stopped or refused "
+        f"{axis.label}: o stable, open square degraded, x at the top stopped, refused or without reference "
         "(0, e.g. MPS against itself, drawn at 1e-3)",
         fontsize=10,
     )
@@ -518,6 +529,8 @@ def _read_row(row: dict[str, str]) -> dict[str, Any]:
         out[key] = float(row[key]) if row.get(key) not in (None, "") else math.nan
     for key in ("steps", "steps_requested", "fluid_particles"):
         out[key] = int(row[key]) if row.get(key) not in (None, "", "None") else None
+    if out["verdict"] == "refused" and NO_REFERENCE in str(out.get("reason", "")):  # rows of older runs
+        out["verdict"] = "no reference"
     nominal = AXES[row["axis"]].nominal
     out["value"] = row["value"] if isinstance(nominal, str) else type(nominal)(float(row["value"]))
     return out
@@ -612,8 +625,8 @@ def run_sweep(profile: ExtremesProfile, args: argparse.Namespace) -> dict[str, A
         f"distance of the MPS reference at the same setting (on the dt axis: MPS at 2 ms) and "
         f"{DEGRADED_DENSITY_FACTOR:g}x its mean density error, *degraded* beyond either, *stopped* when the "
         "rollout guard ended it (step and reason below), *refused* when the configuration was refused "
-        "before the first step or the MPS reference itself stopped (`benchmarks/extremes.py`). Cells: "
-        "verdict, mean Chamfer distance, density error over MPS's.\n\n## Summary\n\n"
+        "before the first step, *no reference* when MPS itself stopped there (`benchmarks/extremes.py`). "
+        "Cells: verdict, mean Chamfer distance, density error over MPS's.\n\n## Summary\n\n"
         f"{summary}\n\n## Per axis\n\n"
         + "\n\n".join(axis_markdown(a, profile.values[a.key], rows, order) for a in axes)
         + "\n\nEvery run's numbers and command: "

@@ -69,7 +69,7 @@ def test_a_guard_stop_and_a_refusal_keep_their_reason():
         "RolloutError: the MPS reference stopped, nothing to compare with: step 0: Courant number 0.8 (x)"
     )
     assert verdict(_run(sim=MPS, error=reference), L0) == ("stopped", "step 0: Courant number 0.8")
-    assert verdict(_run(error=reference), L0)[0] == "refused"
+    assert verdict(_run(error=reference), L0) == ("no reference", "MPS stopped: step 0: Courant number 0.8")
     na = _run()
     na.info["not_applicable"] = "steps by its training frames' 8 ms"
     assert verdict(na, L0) == ("n/a", "steps by its training frames' 8 ms")
@@ -85,6 +85,9 @@ def test_holds_lists_stable_then_degraded_then_stops():
         (0.016, "stopped"),
     ]
     assert holds(dt, cells) == "stable 0.5 ms..2 ms; degraded 4 ms; stops 8 ms..16 ms"
+    # a range never spans another verdict: separate segments
+    apart = [(1.0, "stable"), (9.8, "degraded"), (30.0, "stable"), (100.0, "stopped")]
+    assert holds(AXES["gravity"], apart) == "stable 1; degraded 9.8; stable 30; stops 100"
     assert holds(dt, [(0.002, "n/a")]) == "n/a"
 
 
