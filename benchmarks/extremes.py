@@ -347,7 +347,8 @@ def entries(keys: Sequence[str] | None) -> list[Entry]:
 
 def sweep_run(bench: Bench, profile: ExtremesProfile, axis: Axis, value: Any, entry: Entry) -> Run:
     """Evaluate ``entry`` at ``value`` of ``axis`` (memoised by :class:`Bench`); n/a runs are not run."""
-    key = f"{axis.key}/{axis.show(value).replace(' ', '')}/{entry.sim.key}"
+    # a folder name Hydra takes as one override value: no commas ("1,024" would be a sweep), no spaces
+    key = f"{axis.key}/{re.sub(r'[^A-Za-z0-9._-]', '', axis.show(value))}/{entry.sim.key}"
     label = entry.sim.label
     scene, extra = axis.overrides(value, profile.scene)
     duration = axis.duration(value, profile) if axis.duration else profile.duration

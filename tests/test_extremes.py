@@ -105,12 +105,13 @@ def test_every_simulator_with_a_dam_row_and_both_mps_profiles_are_swept():
 def test_a_quick_sweep_writes_verdicts_tables_plots_and_the_readme_section(tmp_path):
     readme = tmp_path / "README.md"
     readme.write_text(f"# x\n\n{README_START}\nold\n{README_END}\nrest\n")
-    argv = ["--quick", "--axes", "dt", "velocity", "--simulators", "mps", "fgn", "--readme"]
+    argv = ["--quick", "--axes", "dt", "velocity", "particles", "--simulators", "mps", "fgn", "--readme"]
     argv += ["--results", str(tmp_path), "--runs-dir", str(tmp_path / "runs"), "--readme-path", str(readme)]
     assert main(argv) == 0
     with open(tmp_path / "extremes_quick.csv") as f:
         rows = {(r["axis"], r["value"], r["simulator"]): r for r in csv.DictReader(f)}
-    assert len(rows) == 8
+    assert len(rows) == 10
+    assert rows[("particles", "1024", "mps")]["verdict"] == "stable"  # "1,024" in a folder name once broke it
     assert rows[("dt", "0.002", "mps")]["verdict"] == "stable"
     assert float(rows[("dt", "0.002", "mps")]["chamfer_mean_mm"]) == 0.0  # MPS is its own reference there
     assert rows[("dt", "0.04", "fgn")]["verdict"] == "stopped"  # 20x its training dt: the guard ends it
@@ -122,16 +123,16 @@ def test_a_quick_sweep_writes_verdicts_tables_plots_and_the_readme_section(tmp_p
     new = readme.read_text()
     assert "old" not in new and "| mps | stable 2 ms" in new and new.endswith(f"{README_END}\nrest\n")
     # a rerun of one axis and simulator completes the results instead of replacing them
-    assert main([*argv[:1], "--axes", "velocity", "--simulators", "mps", *argv[7:]]) == 0
+    assert main([*argv[:1], "--axes", "velocity", "--simulators", "mps", *argv[8:]]) == 0
     with open(tmp_path / "extremes_quick.csv") as f:
         again = {(r["axis"], r["value"], r["simulator"]): r for r in csv.DictReader(f)}
     assert again.keys() == rows.keys()
     assert again[("dt", "0.04", "fgn")]["date"] == rows[("dt", "0.04", "fgn")]["date"]
-    assert "8 rows" not in (tmp_path / "extremes_quick.md").read_text()
-    assert "6 rows of other axes or simulators kept" in (tmp_path / "extremes_quick.md").read_text()
+    assert "10 runs:" in (tmp_path / "extremes_quick.md").read_text()  # every row, not only this run's
+    assert "8 rows of other axes or simulators kept" in (tmp_path / "extremes_quick.md").read_text()
     # --redraw: the tables and plots again from the csv, nothing run
     (tmp_path / "extremes_quick_dt.png").unlink()
-    assert main([*argv[:1], "--redraw", *argv[7:]]) == 0
+    assert main([*argv[:1], "--redraw", *argv[8:]]) == 0
     with open(tmp_path / "extremes_quick.csv") as f:
         assert {(r["axis"], r["value"], r["simulator"]) for r in csv.DictReader(f)} == set(rows)
     assert (tmp_path / "extremes_quick_dt.png").is_file() and not (
