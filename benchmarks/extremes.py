@@ -616,6 +616,8 @@ def run_sweep(profile: ExtremesProfile, args: argparse.Namespace) -> dict[str, A
     )
     summary = holds_markdown(axes, profile.values, rows, order)
     counts = ", ".join(f"{sum(r['verdict'] == v for r in rows)} {v}" for v in VERDICTS)
+    spent = sum(float(r["wall_s"]) for r in rows if math.isfinite(float(r["wall_s"])))
+    counts += f" ({spent / 3600:.1f} h of runs, each row's command and seconds in the csv)"
     if kept:
         prov["earlier rows"] = (
             f"{kept} rows of other axes or simulators kept from earlier runs (their date in the csv)"
