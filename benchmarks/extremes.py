@@ -56,7 +56,7 @@ from benchmarks.provenance import markdown, provenance
 from benchmarks.tables.bench import Bench, Run
 from benchmarks.tables.config import row_file
 from benchmarks.tables.profiles import QUICK
-from benchmarks.tables.report import REPO, RESULTS
+from benchmarks.tables.report import REPO, RESULTS, write_readme
 from benchmarks.tables.rows import fmt, md_table
 from benchmarks.tables.simulators import GROUND_TRUTH, Simulator, all_simulators
 
@@ -557,18 +557,6 @@ def merged_rows(path: Path, new: list[dict[str, Any]]) -> tuple[list[dict[str, A
     return rows, len(earlier)
 
 
-def write_readme(section: str, readme: Path) -> bool:
-    """Replace the README's text between the extremes markers with ``section``; False when it has none."""
-    text = readme.read_text()
-    if README_START not in text or README_END not in text:
-        log.warning("%s has no %s ... %s markers: README not updated", readme, README_START, README_END)
-        return False
-    head, rest = text.split(README_START, 1)
-    _, tail = rest.split(README_END, 1)
-    readme.write_text(f"{head}{README_START}\n{section.strip()}\n{README_END}{tail}")
-    return True
-
-
 def run_sweep(profile: ExtremesProfile, args: argparse.Namespace) -> dict[str, Any]:
     """Run the sweep and write its files; returns ``rows`` and ``files``."""
     start, load = time.perf_counter(), os.getloadavg()[0]
@@ -643,6 +631,7 @@ def run_sweep(profile: ExtremesProfile, args: argparse.Namespace) -> dict[str, A
             f"density error of MPS at the same setting; {profile.description} "
             f"(`benchmarks/results/{profile.prefix}.md`).",
             Path(args.readme_path),
+            (README_START, README_END),
         )
     print(f"[extremes] {counts} in {elapsed / 60:.1f} min: {', '.join(str(f) for f in files)}", flush=True)
     return {"rows": rows, "files": files, "readme": readme}

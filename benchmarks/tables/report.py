@@ -67,15 +67,18 @@ def cpu_model() -> str:
     return platform.processor() or "unknown CPU"
 
 
-def write_readme(section: str, readme: Path = README) -> bool:
-    """Replace the text between the README's table markers with ``section``; False when it has none."""
+def write_readme(
+    section: str, readme: Path = README, marks: tuple[str, str] = (MARK_START, MARK_END)
+) -> bool:
+    """Replace the text between the README's ``marks`` (the tables') with ``section``; False without them."""
+    start, end = marks
     text = readme.read_text()
-    if MARK_START not in text or MARK_END not in text:
-        log.warning("%s has no %s ... %s markers: README not updated", readme, MARK_START, MARK_END)
+    if start not in text or end not in text:
+        log.warning("%s has no %s ... %s markers: README not updated", readme, start, end)
         return False
-    head, rest = text.split(MARK_START, 1)
-    _, tail = rest.split(MARK_END, 1)
-    readme.write_text(f"{head}{MARK_START}\n{section.strip()}\n{MARK_END}{tail}")
+    head, rest = text.split(start, 1)
+    _, tail = rest.split(end, 1)
+    readme.write_text(f"{head}{start}\n{section.strip()}\n{end}{tail}")
     return True
 
 

@@ -212,27 +212,17 @@ def read_scene_info(path: str | os.PathLike, samples: bool = True) -> SceneInfo:
     with open_lagfluid_file(path, "scene file") as f:
         check_scene_file(f, path, samples)
         g = f[GROUP]
-        if not samples:
-            return SceneInfo(
-                path=path,
-                attrs=dict(g.attrs),
-                n_fluid=int(g["position"].shape[1]),
-                n_boundary=int(g["boundary_position"].shape[0]),
-                frames=int(g["position"].shape[0]),
-                samples=0,
-                collision_samples=0,
-                complete=bool(g.attrs.get("complete", False)),
-            )
-        s = f["samples"]
+        s = f["samples"] if samples else None
         return SceneInfo(
             path=path,
             attrs=dict(g.attrs),
             n_fluid=int(g["position"].shape[1]),
             n_boundary=int(g["boundary_position"].shape[0]),
             frames=int(g["position"].shape[0]),
-            samples=int(s["step"].shape[0]),
-            collision_samples=int(s["collision/position"].shape[0]),
-            complete=bool(g.attrs.get("complete", False)) and bool(s.attrs.get("complete", False)),
+            samples=int(s["step"].shape[0]) if s is not None else 0,
+            collision_samples=int(s["collision/position"].shape[0]) if s is not None else 0,
+            complete=bool(g.attrs.get("complete", False))
+            and (s is None or bool(s.attrs.get("complete", False))),
         )
 
 
