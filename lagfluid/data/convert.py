@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import os
 import shutil
 import sys
@@ -45,6 +46,8 @@ from lagfluid.data.layout import DATASET_FORMAT, METADATA_FILE, SPLITS, scene_pa
 from lagfluid.data.store import TrajectoryWriter, read_trajectory
 from lagfluid.errors import LagfluidError
 from lagfluid.state import ParticleType
+
+log = logging.getLogger(__name__)
 
 LB_FLUID, LB_WALL = 0, 1
 DEEPMIND_KINEMATIC = 3
@@ -447,12 +450,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--to", choices=list(WRITERS), help="default: lagrangebench for a lagfluid source")
     parser.add_argument("--dummies", action="store_true", help="lagfluid source: keep the dummy layers")
     args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
     try:
         out = convert(args.src, args.dst, args.to, args.dummies)
     except LagfluidError as err:
         sys.stderr.write(f"lagfluid.data.convert: {err}\n")
         return 1
-    print(f"wrote {out}")
+    log.info("wrote %s", out)
     return 0
 
 
