@@ -22,6 +22,7 @@ every wall (the authors, ``wall_hops=None``), one hop does not (``benchmarks/res
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass
 
 import torch
@@ -279,10 +280,7 @@ class VerletNeighborList:
             # Wall targets: exactly the walls within `wall_hops` hops (of length `cutoff`) of the fluid at
             # these positions. The list holds more (walls within reach at its last build), but a set that
             # depended on when the list was rebuilt would make wall pressures depend on history.
-            active = torch.zeros(pos.shape[0], dtype=torch.bool, device=pos.device)
-            active[walls.dyn_dst[from_fluid < self.cutoff]] = True
-            for _ in range(self.wall_hops - 1):
-                active[walls.hop_dst[active.index_select(0, walls.hop_src)]] = True
+            active = self._hops_from(walls.dyn_dst[from_fluid < self.cutoff], pos)
             within &= active.index_select(0, walls.candidates[1])
         w_keep = torch.nonzero(within).flatten()
         # Wall targets come after every fluid target, so fluid rows then wall rows stay sorted by target.
@@ -303,15 +301,46 @@ class VerletNeighborList:
         torch.index_select(w_dist, 0, w_keep, out=out_dist[k:])
         return Graph(edge_index, out_rel, out_dist, radius)
 
+    def wall_targets(self, pos: Tensor, ptype: Tensor) -> Tensor | None:
+        """(N,) bool: the walls that are graph targets at ``pos`` (N, 3); None when every wall is one.
+
+        The walls within ``wall_hops`` hops of the fluid at these positions, as :meth:`graph` selects them
+        (rebuilding the list first when the fluid has moved too far, as :meth:`graph` does).
+        """
+        self.update(pos, ptype)
+        if self.wall_hops is None:
+            return None
+        walls = self._static
+        if walls is None or walls.num_candidates == 0:
+            return torch.zeros(pos.shape[0], dtype=torch.bool, device=pos.device)
+        if pair_kernels.applies(pos):
+            return self._active_walls(pos)
+        return self._hops_from(walls.dyn_dst[walls.geometry(pos)[2] < self.cutoff], pos)
+
+    def closest_static_pair(self) -> float:
+        """The shortest pair between boundary particles into a wall target under the cutoff, m (inf if none).
+
+        On a lattice boundary l0: a graph of a radius up to it has no edge between two boundary particles.
+        """
+        return self._static.closest_static if self._static is not None else math.inf
+
     def _active_walls(self, pos: Tensor) -> Tensor:
         """(N,) bool: the walls within ``wall_hops`` hops (of length ``cutoff``) of the fluid at ``pos``.
 
         The same set as the torch path of :meth:`graph` computes, from the fluid-source candidate pairs.
         """
+        near, _, _ = pair_kernels.pairs_within(pos, [self._static.dyn_edges], self.cutoff)
+        return self._hops_from(near[1], pos)
+
+    def _hops_from(self, first: Tensor, pos: Tensor) -> Tensor:
+        """(N,) bool: the walls ``first`` (indices) and ``wall_hops - 1`` hops beyond them.
+
+        ``first``: the walls within the cutoff of a fluid particle; a hop is a static wall-to-wall pair
+        closer than the cutoff.
+        """
         walls = self._static
-        near, _, _ = pair_kernels.pairs_within(pos, [walls.dyn_edges], self.cutoff)
         active = torch.zeros(pos.shape[0], dtype=torch.bool, device=pos.device)
-        active[near[1]] = True
+        active[first] = True
         for _ in range(self.wall_hops - 1):
             active[walls.hop_dst[active.index_select(0, walls.hop_src)]] = True
         return active
@@ -334,6 +363,8 @@ class _WallRows:
             ``dyn_dst`` their targets.
         hop_src, hop_dst: boundary-to-wall pairs closer than the cutoff (static): the hops between walls.
         boundary_at: (N - n_fluid, 3) the boundary positions the cache holds.
+        closest_static: the shortest boundary-to-wall pair under the cutoff, m (inf if none): no graph of a
+            smaller radius has a boundary-source edge into a wall.
     """
 
     candidates: Tensor
@@ -345,6 +376,7 @@ class _WallRows:
     hop_src: Tensor
     hop_dst: Tensor
     boundary_at: Tensor
+    closest_static: float
 
     @property
     def num_candidates(self) -> int:
@@ -359,9 +391,11 @@ class _WallRows:
         dyn_edges = take_edges(candidates, dyn)
         static = take_edges(candidates, torch.nonzero(~from_fluid).flatten())  # boundary sources, in order
         if pair_kernels.applies(pos):
-            hop_pairs = pair_kernels.pairs_within(pos, [static], cutoff)[0]
+            hop_pairs, _, hop_dist = pair_kernels.pairs_within(pos, [static], cutoff)
         else:
-            hop_pairs = take_edges(static, torch.nonzero(edge_vectors(pos, static)[1] < cutoff).flatten())
+            static_dist = edge_vectors(pos, static)[1]
+            hop = torch.nonzero(static_dist < cutoff).flatten()
+            hop_pairs, hop_dist = take_edges(static, hop), static_dist.index_select(0, hop)
         return cls(
             candidates,
             None,
@@ -372,6 +406,7 @@ class _WallRows:
             hop_pairs[0],
             hop_pairs[1],
             pos[n_fluid:].clone(),
+            float(hop_dist.min()) if hop_dist.numel() else math.inf,
         )
 
     def geometry(self, pos: Tensor) -> tuple[Tensor, Tensor, Tensor]:

@@ -773,3 +773,42 @@ def test_shipped_weights_come_with_a_model_card_and_build_the_model(model):
         assert "optimizer" not in ckpt  # exported for shipping
     sim = build_simulator(cfg)  # the shipped weights, no model.weights
     sim.reset(build_initial_state(cfg))
+
+
+@pytest.mark.parametrize("model", ["fgn", "mps"])
+def test_graphs_derived_across_a_rollout_equal_fresh_filters(monkeypatch, model):
+    """Every graph a step hands a stage (filtered, sliced, derived, or carried over from the last step's
+    x**) equals a fresh exact filter at its positions; and the carry saves filters: FGN filters the Verlet
+    list once a step (at x**), MPS twice (x^n at the Laplacian's radius cannot be derived)."""
+    from lagfluid.neighbor_list import VerletNeighborList
+    from lagfluid.physics.stages import StepContext
+
+    cfg = _compose(f"model={model}", "scene=dam_small", "scene.params.gravity=[0,0,-60]")  # fast: big moves
+    sim, state = build_simulator(cfg), build_initial_state(cfg)
+    sim.reset(state)
+    asked, filters = [], []
+    graph, list_graph = StepContext.graph, VerletNeighborList.graph
+
+    def recording(self, pos, factor, fluid_targets_only=False):
+        g = graph(self, pos, factor, fluid_targets_only)
+        asked.append((pos.clone(), self.radius(factor), fluid_targets_only, g))
+        return g
+
+    def counting(self, *args, **kwargs):
+        filters.append(1)
+        return list_graph(self, *args, **kwargs)
+
+    monkeypatch.setattr(StepContext, "graph", recording)
+    monkeypatch.setattr(VerletNeighborList, "graph", counting)
+    steps = 25
+    for _ in range(steps):
+        state = sim.step(state)
+    fresh = VerletNeighborList(sim.neighbors.cutoff, 0.0, wall_hops=sim.settings.wall_hops)
+    for pos, radius, fluid_only, g in asked:
+        ref = list_graph(fresh, pos, state.ptype, radius, fluid_only)
+        order = torch.argsort(g.edge_index[1] * pos.shape[0] + g.edge_index[0])
+        ref_order = torch.argsort(ref.edge_index[1] * pos.shape[0] + ref.edge_index[0])
+        assert torch.equal(g.edge_index[:, order], ref.edge_index[:, ref_order]), (radius, fluid_only)
+        assert torch.equal(g.dist[order], ref.dist[ref_order])
+    per_step = {"fgn": 1, "mps": 2}[model]
+    assert len(filters) <= per_step * steps + 2, (len(filters), len(asked))

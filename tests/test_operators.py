@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import math
 from functools import cache
 
@@ -611,3 +612,55 @@ def test_compiled_laplacian_equals_the_torch_operations(monkeypatch, dtype, chan
     assert ops._compiled_laplacian(bad, ops.edge_geometry(pos, ei)[1], values, re, 1.0, 600) is None
     with pytest.raises((IndexError, RuntimeError)):
         ops.laplacian(pos, bad, values, re, 54.3, 3.24 * L0**2, geometry=ops.edge_geometry(pos, ei))
+
+
+@pytest.mark.skipif(ops._operator_kernels() is None, reason="numba not installed")
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("include_self", [True, False])
+def test_compiled_min_pressure_gradient_equals_the_torch_operations(monkeypatch, dtype, include_self):
+    # One compiled pass per row gives the torch path's numbers to the bit, into a prefix of the rows too, with
+    # sources left out as the torch path drops their edges (the dummy walls), and declines unsorted graphs.
+    gen = torch.Generator().manual_seed(8)
+    pos = torch.rand(600, 3, generator=gen, dtype=dtype) * 0.4
+    re = 2.1 * L0
+    ei = brute_edges(pos, re)
+    p = torch.randn(600, generator=gen, dtype=dtype)
+    sources = torch.rand(600, generator=gen) > 0.3
+    pos_dup = torch.cat([pos, pos[:1] + 1e-9])  # a near-coincident pair (r < 1e-8: weight 0)
+    ei_dup, p_dup = brute_edges(pos_dup, re), torch.cat([p, p[:1] - 1.0])
+    cases = [
+        (pos, ei, p, None, None),
+        (pos, ei[:, ei[1] < 250], p, 250, sources),
+        (pos_dup, ei_dup, p_dup, None, None),
+    ]
+    for x, e, pr, rows, src in cases:
+        grad = functools.partial(
+            ops.min_pressure_gradient,
+            x,
+            e,
+            pr,
+            re,
+            N0_21,
+            include_self=include_self,
+            num_nodes=rows,
+            sources=src,
+        )
+        fast = grad()
+        with monkeypatch.context() as m:
+            m.setattr(ops, "_compiled_min_gradient", lambda *a: None)
+            slow = grad()
+            if src is not None:  # and the torch path with sources is the graph without those edges
+                kept = e[:, src[e[0]]]
+                plain = ops.min_pressure_gradient(
+                    x, kept, pr, re, N0_21, include_self=include_self, num_nodes=rows
+                )
+                assert torch.equal(slow, plain)
+        assert fast.shape == slow.shape and torch.equal(fast, slow)
+        assert bool((fast != 0).any())
+    shuffled = ei[:, torch.randperm(ei.shape[1], generator=gen)]
+    args = (re, 1.0, include_self, 600, None, None)
+    assert ops._compiled_min_gradient(pos, shuffled, p, *args) is None
+    assert ops._compiled_min_gradient(pos, ei, p, *args) is not None
+    nan = p.clone()
+    nan[ei[0, 0]] = float("nan")
+    assert bool(torch.isnan(ops.min_pressure_gradient(pos, ei, nan, re, N0_21)[ei[1, 0]]).all())

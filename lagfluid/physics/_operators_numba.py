@@ -47,3 +47,48 @@ def laplacian_rows(src, dist, values, row_ptr, re, r_min, scale, out):
             j = src[e]
             for k in range(out.shape[1]):
                 out[i, k] += (values[j, k] - values[i, k]) * c
+
+
+@njit(parallel=True, cache=True)
+def min_gradient_rows(
+    src, rel, dist, pressure, source_ok, use_mask, row_ptr, re, r_min, scale, with_self, out
+):
+    """The minimum-pressure gradient into every row i of ``out`` (num_rows, D).
+
+    ``out[i] = scale sum_e (rel_e w_e / max(r_e, r_min)^2) (p_j - p_min,i)`` over row i's edges whose source
+    ``j`` has ``source_ok[j]`` (all with ``use_mask`` False), ``p_min,i`` the minimum of those ``p_j`` (and
+    of ``p_i`` with ``with_self``, or where no edge arrives), ``w_e = re / r_e - 1`` inside
+    ``r_min < r < re``, else 0. A NaN pressure propagates, as torch's ``amin`` does.
+    """
+    one = dist.dtype.type(1.0)
+    zero = dist.dtype.type(0.0)
+    for i in prange(out.shape[0]):
+        for k in range(out.shape[1]):
+            out[i, k] = 0.0
+        p_min = pressure[i]
+        seen = with_self
+        for e in range(row_ptr[i], row_ptr[i + 1]):
+            j = src[e]
+            if use_mask and not source_ok[j]:
+                continue
+            p = pressure[j]
+            if not seen:
+                p_min = p
+                seen = True
+            elif p_min == p_min and (p < p_min or p != p):  # once NaN, the minimum stays NaN
+                p_min = p
+        for e in range(row_ptr[i], row_ptr[i + 1]):
+            j = src[e]
+            if use_mask and not source_ok[j]:
+                continue
+            d = dist[e]
+            w = (one / d) * re - one
+            if not (d > r_min and d < re):
+                w = zero
+            dc = d if d > r_min else r_min
+            c = w / (dc * dc)
+            dp = pressure[j] - p_min
+            for k in range(out.shape[1]):
+                out[i, k] += (rel[e, k] * c) * dp
+        for k in range(out.shape[1]):
+            out[i, k] = out[i, k] * scale

@@ -19,6 +19,7 @@ The MPS weight (Koshizuka & Oka 1996) is ``w(r) = re / r - 1`` for ``1e-8 < r < 
 from __future__ import annotations
 
 from types import ModuleType
+from typing import Any
 
 import numpy as np
 import torch
@@ -312,6 +313,7 @@ def min_pressure_gradient(
     num_nodes: int | None = None,
     *,
     geometry: Geometry | None = None,
+    sources: Tensor | None = None,
 ) -> Tensor:
     """Stabilised MPS pressure gradient with the neighbourhood minimum pressure (Koshizuka & Oka).
 
@@ -325,8 +327,8 @@ def min_pressure_gradient(
     ``sum_j (x_j - x_i) / r_ij^2 w_ij = 0``); at particles with a one-sided neighbourhood (free
     surface, walls) it differs from :func:`gradient`: for ``p = c z`` at the centre of a lattice's top
     face (radius 2.1 l0) it gives ``grad_z = -0.4896 c`` where :func:`gradient` gives ``+0.5 c``.
-    Only the neighbours present in ``edge_index`` enter the minimum: drop edges from particles without
-    pressure (dummy walls) beforehand.
+    Only the neighbours present in ``edge_index`` enter the minimum: leave out particles without pressure
+    (dummy walls) with ``sources``.
 
     Args:
         pos: positions, shape (N, 3).
@@ -338,12 +340,22 @@ def min_pressure_gradient(
         include_self: include ``p_i`` in the neighbourhood minimum.
         num_nodes: number of output rows (default ``N``).
         geometry: optional precomputed ``(rel, dist)`` of these edges (see :func:`edge_geometry`).
+        sources: optional (N,) bool, the particles that may be neighbours: edges from the others are left
+            out, as if absent from ``edge_index``.
 
     Returns:
         Gradient, shape (N, 3). Rows without incoming edges are 0.
     """
-    src, dst = edge_index[0], edge_index[1]
     size = _num_nodes(pos, num_nodes)
+    if not isinstance(n0, Tensor):
+        fast = _compiled_min_gradient(
+            pos, edge_index, pressure, re, dim / n0, include_self, size, geometry, sources
+        )
+        if fast is not None:
+            return fast
+    if sources is not None:
+        edge_index, geometry = _from_sources(edge_index, geometry, sources)
+    src, dst = edge_index[0], edge_index[1]
     # Rows that receive no edge keep p_i; with include_self=False the others take min_j p_j only.
     p_min = pressure.scatter_reduce(
         0, dst, pressure.index_select(0, src), reduce="amin", include_self=include_self
@@ -555,6 +567,72 @@ def _operator_kernels() -> ModuleType | None:
     return pair_kernels.load("lagfluid.physics._operators_numba")
 
 
+def _from_sources(
+    edge_index: Tensor, geometry: Geometry | None, sources: Tensor
+) -> tuple[Tensor, Geometry | None]:
+    """The edges (and their geometry) whose source has ``sources[j]`` True."""
+    keep = torch.nonzero(sources.index_select(0, edge_index[0])).flatten()
+    picked = (
+        None if geometry is None else (geometry[0].index_select(0, keep), geometry[1].index_select(0, keep))
+    )
+    return edge_index.index_select(1, keep), picked
+
+
+def _sorted_rows(edge_index: Tensor, num_sources: int, num_nodes: int) -> tuple[Any, Any, Any] | None:
+    """``(dst, src, row_ptr)`` numpy arrays of a graph sorted by target, or None (unsorted, out of range)."""
+    from lagfluid import pair_kernels
+
+    kern = _operator_kernels()
+    dst, src = edge_index[1].contiguous().numpy(), edge_index[0].contiguous().numpy()
+    pair_kernels.set_threads()
+    descents, outside = kern.check_edges(dst, src, num_sources)
+    if descents or outside or (dst.size and not 0 <= dst[0] <= dst[-1] < num_nodes):
+        return None  # unsorted, or indices out of range (the torch path reports those)
+    return dst, src, np.searchsorted(dst, np.arange(num_nodes + 1), side="left")
+
+
+def _compiled_min_gradient(
+    pos: Tensor,
+    edge_index: Tensor,
+    pressure: Tensor,
+    re: float,
+    scale: float,
+    include_self: bool,
+    num_nodes: int,
+    geometry: Geometry | None,
+    sources: Tensor | None,
+) -> Tensor | None:
+    """:func:`min_pressure_gradient` in one compiled pass per target row, or None where it does not apply.
+
+    As :func:`_compiled_laplacian`: CPU, no autograd, edges sorted by target. The torch path's numbers to
+    the bit without its (E, 3) temporaries, the scatter of the minimum and the selection of the edges from
+    ``sources`` (a pass over every edge of the step's largest graph; ``benchmarks/results/fgn_speed.md``).
+    """
+    from lagfluid import pair_kernels
+
+    kern = _operator_kernels()
+    if kern is None or not pair_kernels.applies(pos, pressure) or pressure.dtype != pos.dtype:
+        return None
+    if num_nodes > pressure.shape[0]:
+        return None
+    rows = _sorted_rows(edge_index, pressure.shape[0], num_nodes)
+    if rows is None:
+        return None
+    _, src, row_ptr = rows
+    rel, dist = edge_geometry(pos, edge_index, geometry)
+    if not pair_kernels.applies(rel, dist):
+        return None
+    p = pressure.detach().contiguous().numpy()
+    mask = sources.contiguous().numpy() if sources is not None else np.ones(1, dtype=np.bool_)
+    out = np.empty((num_nodes, rel.shape[1]), dtype=p.dtype)
+    t = p.dtype.type  # torch rounds Python scalars to the tensor's dtype
+    r, d = rel.detach().contiguous().numpy(), dist.detach().contiguous().numpy()
+    kern.min_gradient_rows(
+        src, r, d, p, mask, sources is not None, row_ptr, t(re), t(_R_MIN), t(scale), include_self, out
+    )
+    return torch.from_numpy(out)
+
+
 def _compiled_laplacian(
     edge_index: Tensor, dist: Tensor, values: Tensor, re: float, scale: float, num_nodes: int
 ) -> Tensor | None:
@@ -572,12 +650,10 @@ def _compiled_laplacian(
         return None
     if num_nodes > values.shape[0] or values.dtype != dist.dtype:
         return None
-    dst, src = edge_index[1].contiguous().numpy(), edge_index[0].contiguous().numpy()
-    pair_kernels.set_threads()
-    descents, outside = kern.check_edges(dst, src, values.shape[0])
-    if descents or outside or (dst.size and not 0 <= dst[0] <= dst[-1] < num_nodes):
-        return None  # unsorted, or indices out of range (the torch path reports those)
-    row_ptr = np.searchsorted(dst, np.arange(num_nodes + 1), side="left")
+    rows = _sorted_rows(edge_index, values.shape[0], num_nodes)
+    if rows is None:
+        return None
+    _, src, row_ptr = rows
     vals = values.detach().contiguous().numpy()
     vals2 = vals.reshape(vals.shape[0], -1)
     out = np.empty((num_nodes, vals2.shape[1]), dtype=vals.dtype)

@@ -286,6 +286,32 @@ _FIELD_NAMES = frozenset(f.name for f in dataclasses.fields(SplitStepFields))
 
 
 @dataclass
+class _Anchor:
+    """A graph at the full cutoff and the positions it was filtered at (:meth:`StepContext.graph`).
+
+    Attributes:
+        src: the positions tensor it was asked about; ``version`` its ``_version`` then.
+        pos: (N, 3) a copy of those positions (``src`` may since have been updated in place).
+        graph: every pair within the cutoff at ``pos``.
+        fluid_only: whether its targets are the fluid only (else also the walls within reach).
+    """
+
+    src: Tensor
+    version: int
+    pos: Tensor
+    graph: Graph
+    fluid_only: bool
+
+    def at(self, pos: Tensor) -> bool:
+        """True when ``pos`` is the very tensor the graph was filtered at, unmodified since."""
+        return pos is self.src and pos._version == self.version
+
+    def moved(self, pos: Tensor, n_fluid: int) -> float:
+        """The largest distance a fluid particle moved from the anchor's positions to ``pos``, m."""
+        return float((pos[:n_fluid] - self.pos[:n_fluid]).norm(dim=1).max()) if n_fluid else 0.0
+
+
+@dataclass
 class StepContext:
     """What every stage of one step may read: the state at ``x^n``, settings, constants and neighbours.
 
@@ -307,8 +333,7 @@ class StepContext:
     timer: StageTimer
     info: dict[str, float] = field(default_factory=dict)
     fields: SplitStepFields | None = None
-    # (the positions tensor asked about, its version, a copy of its values, the graph, fluid targets only)
-    _full: tuple[Tensor, int, Tensor, Graph, bool] | None = None
+    _anchors: list[_Anchor] = field(default_factory=list)  # full-cutoff graphs, newest first (see graph)
     _within: dict[tuple[float, bool], Graph] = field(default_factory=dict)
     _labelled: set[str] = field(default_factory=set)  # fields a stage recorded with record_label
 
@@ -356,43 +381,86 @@ class StepContext:
         ``fluid_targets_only`` (then the wall rows cost nothing).
 
         Exact, and cheap when possible: a graph at the full cutoff is filtered from the Verlet list once per
-        set of positions and kept; a smaller radius ``r`` at *nearby* positions (every fluid particle moved
-        at most ``d`` since) is derived from it by taking its pairs within ``r + 2d`` and recomputing their
-        distances, so the collision graph at ``x*`` costs a fraction of a full pass.
+        set of positions and kept as an *anchor* (the newest, and the newest with wall targets); stages at
+        the same positions slice theirs from it, and a smaller radius ``r`` at *nearby* positions (every
+        fluid particle moved at most ``d`` since) is derived from it by taking its pairs within ``r + 2d``
+        and recomputing their distances (:meth:`_derive`). The split step hands its last anchor to the next
+        step, so a step of FGN filters the Verlet list once (at ``x**``) and derives the rest.
         """
         radius = self.radius(factor)
         nf = self.n_fluid
+        key = (radius, fluid_targets_only)
         with self.timer("neighbors", pos.device):
-            if self._full is not None:
-                src, version, old_pos, full, full_fluid_only = self._full
-                usable = full_fluid_only <= fluid_targets_only  # an all-target graph serves both requests
-                # Same tensor object, not modified since: identity, not the data pointer, which a freed
-                # temporary's successor can reuse.
-                if pos is src and pos._version == version and usable:
-                    cache_key = (radius, fluid_targets_only)
-                    if cache_key not in self._within:  # stages at one set of positions share sub-graphs
-                        every = self._within.get((radius, False))
-                        if fluid_targets_only and every is not None:
-                            # Sorted by target: the fluid-target graph is a prefix (a slice, no pass).
-                            self._within[cache_key] = every.into_first(nf)
-                        else:
-                            sub = full.into_first(nf) if fluid_targets_only and not full_fluid_only else full
-                            self._within[cache_key] = sub.within(radius)
-                    return self._within[cache_key]
-                moved = float((pos[:nf] - old_pos[:nf]).norm(dim=1).max()) if nf else 0.0
-                # Only fluid-target graphs are derived: the wall targets of an all-target graph depend on
-                # where the fluid is now (see lagfluid.neighbor_list), which a smaller graph cannot tell.
-                if fluid_targets_only and radius + 2.0 * moved < full.radius:
-                    near = full.into_first(nf).within(radius + 2.0 * moved)
-                    if pair_kernels.applies(pos):
-                        return Graph(*pair_kernels.pairs_within(pos, [near.edge_index], radius), radius)
-                    rel, dist = edge_vectors(pos, near.edge_index)
-                    # each end moved at most `moved`: the new distances are below near.radius + 2 moved
-                    return Graph(near.edge_index, rel, dist, near.radius + 2.0 * moved).within(radius)
+            newest = self._anchors[0] if self._anchors else None
+            # Same tensor object, not modified since: identity, not the data pointer, which a freed
+            # temporary's successor can reuse. An all-target graph serves both requests.
+            if newest is not None and newest.at(pos) and newest.fluid_only <= fluid_targets_only:
+                if key not in self._within:  # stages at one set of positions share sub-graphs
+                    every = self._within.get((radius, False))
+                    if fluid_targets_only and every is not None:
+                        # Sorted by target: the fluid-target graph is a prefix (a slice, no pass).
+                        self._within[key] = every.into_first(nf)
+                    else:
+                        full = newest.graph
+                        sub = full.into_first(nf) if fluid_targets_only and not newest.fluid_only else full
+                        self._within[key] = sub.within(radius)
+                return self._within[key]
+            for anchor in self._anchors:
+                if anchor.fluid_only and not fluid_targets_only:
+                    continue
+                moved = anchor.moved(pos, nf)
+                if radius + 2.0 * moved < anchor.graph.radius:
+                    derived = self._derive(pos, anchor, radius, moved, fluid_targets_only)
+                    if derived is not None:
+                        return derived
             full = self.neighbors.graph(pos, self.state.ptype, self.neighbors.cutoff, fluid_targets_only)
-            self._full = (pos, pos._version, pos.clone(), full, fluid_targets_only)
-            self._within = {(radius, fluid_targets_only): full.within(radius)}
-            return self._within[(radius, fluid_targets_only)]
+            anchor = _Anchor(pos, pos._version, pos.clone(), full, fluid_targets_only)
+            # the newest first, and the newest all-target one behind it when this one has fluid targets only
+            older = [a for a in self._anchors if not a.fluid_only][:1] if fluid_targets_only else []
+            self._anchors = [anchor, *older]
+            self._within = {key: full.within(radius)}
+            return self._within[key]
+
+    def _derive(
+        self, pos: Tensor, anchor: _Anchor, radius: float, moved: float, fluid_only: bool
+    ) -> Graph | None:
+        """Every pair within ``radius`` at ``pos`` from the ``anchor`` graph; None when it cannot tell.
+
+        Every fluid particle has moved at most ``moved`` from the anchor's positions, and
+        ``radius + 2 moved < anchor.graph.radius``. A pair closer than ``radius`` now was closer than
+        ``radius + 2 moved`` then (boundaries are static), so it is in the anchor: one pass over those pairs
+        replaces a pass over the Verlet candidates. Fluid-target requests always can. All-target ones need
+        an all-target anchor, and the walls that are targets now (those within ``wall_hops`` hops of the
+        fluid *now*, see :mod:`lagfluid.neighbor_list`) to be among its targets, or to have no edge within
+        ``radius``; walls that stopped being targets are dropped.
+        """
+        full = anchor.graph
+        nf = self.n_fluid
+        if fluid_only:
+            near = full.into_first(nf).within(radius + 2.0 * moved)
+            mask = None
+        else:
+            active = self.neighbors.wall_targets(pos, self.state.ptype)
+            mask = None
+            if active is not None:
+                then = torch.zeros_like(active)  # the walls that were targets: full's rows after the fluid's
+                then[full.edge_index[1, full.into_first(nf).edge_index.shape[1] :]] = True
+                # A wall newly within reach of the fluid has no row in the anchor. It has no fluid within
+                # radius now (it would have been within radius + moved < cutoff then), so it matters only
+                # if two boundary particles can be closer than radius.
+                newly = bool((active & ~then).any())
+                if newly and radius > self.neighbors.closest_static_pair():
+                    return None
+                mask = active
+                mask[:nf] = True
+            near = full.within(radius + 2.0 * moved)
+        if pair_kernels.applies(pos):
+            return Graph(*pair_kernels.pairs_within(pos, [near.edge_index], radius, [mask]), radius)
+        rel, dist = edge_vectors(pos, near.edge_index)
+        keep = dist < radius
+        if mask is not None:
+            keep &= mask.index_select(0, near.edge_index[1])
+        return Graph(near.edge_index, rel, dist, radius).select(keep)
 
 
 class AdvectionStage(Protocol):
@@ -495,6 +563,9 @@ class SplitStepSimulator:
         self.timer = StageTimer()
         self.last_info: dict[str, float] = {}
         self.last_fields: SplitStepFields | None = None
+        # The last step's graph at x**, kept for the next step when it starts from that step's output:
+        # (the returned positions, their version, the step context's cached graph).
+        self._carried: tuple[Tensor, Tensor, int, list[_Anchor]] | None = None
 
     # ------------------------------------------------------------------ Simulator interface
     @property
@@ -510,6 +581,7 @@ class SplitStepSimulator:
         """
         self.constants = scene_constants(state, self.settings)
         self.neighbors = neighbor_list(self.settings, self.cutoff(state.params) * state.params.l0)
+        self._carried = None
 
     def cutoff(self, params: SceneParams) -> float:
         """Largest radius (in l0) the configured stages use for this scene: the neighbour list's cutoff.
@@ -549,6 +621,10 @@ class SplitStepSimulator:
             self.timer,
             fields=SplitStepFields() if record else None,
         )
+        carried = self._carried
+        if carried is not None and carried[0] is state.pos and carried[1] is state.ptype:
+            if state.pos._version == carried[2]:  # the last step's output, untouched: its x** graph is
+                ctx._anchors = carried[3]  # x** is a few um from x^n: x^n's graphs derive from its graph
         nf, dt, device = state.n_fluid, state.params.dt, state.device
         # Updated in place row-slice by row-slice: the step context's graph cache keys on this tensor.
         pos, vel = state.pos.clone(), state.vel.clone()
@@ -584,6 +660,7 @@ class SplitStepSimulator:
         ctx.info["list_rebuilds"] = float(self.neighbors.builds - builds)
         self.last_info = dict(ctx.info)
         self.last_fields = ctx.fields
+        self._carried = (pos, state.ptype, pos._version, ctx._anchors) if ctx._anchors else None
         return ParticleState(
             pos=pos,
             vel=vel,
@@ -597,28 +674,33 @@ class SplitStepSimulator:
         )
 
     def gradient_graph(self, ctx: StepContext, pos: Tensor) -> Graph:
-        """Edges into fluid particles within ``re_gradient``, dummy sources left out.
-
-        Dummy particles carry no pressure: in the gradient they would pose as the neighbourhood minimum p = 0.
-        """
-        g = ctx.graph(pos, self.settings.re_gradient, fluid_targets_only=True)
-        return g.select(ctx.state.ptype.index_select(0, g.edge_index[0]) != ParticleType.DUMMY)
+        """Edges into fluid particles within ``re_gradient``, dummy sources included."""
+        return ctx.graph(pos, self.settings.re_gradient, fluid_targets_only=True)
 
     def pressure_acceleration(self, ctx: StepContext, pos: Tensor, pressure: Tensor, graph: Graph) -> Tensor:
         """``-grad p / rho`` on the fluid particles (N_fluid, 3), over :meth:`gradient_graph`.
 
         ``settings.pressure_gradient``: ``minimum`` (the authors' minimum-pressure gradient) or ``corrected``
-        (:func:`lagfluid.physics.operators.corrected_pressure_gradient`).
+        (:func:`lagfluid.physics.operators.corrected_pressure_gradient`). Dummy particles carry no pressure
+        and are left out: in the gradient they would pose as the neighbourhood minimum p = 0.
         """
-        operator = {"minimum": ops.min_pressure_gradient, "corrected": ops.corrected_pressure_gradient}
-        grad = operator[self.settings.pressure_gradient](
-            pos,
-            graph.edge_index,
-            pressure,
-            ctx.radius(self.settings.re_gradient),
-            self.constants.n0,
-            dim=ctx.params.dim,
-            num_nodes=ctx.n_fluid,
-            geometry=graph.geometry,
-        )
+        with_pressure = ctx.state.ptype != ParticleType.DUMMY
+        radius, n0 = ctx.radius(self.settings.re_gradient), self.constants.n0
+        common = {"dim": ctx.params.dim, "num_nodes": ctx.n_fluid}
+        if self.settings.pressure_gradient == "minimum":
+            grad = ops.min_pressure_gradient(
+                pos,
+                graph.edge_index,
+                pressure,
+                radius,
+                n0,
+                geometry=graph.geometry,
+                sources=with_pressure,
+                **common,
+            )
+        else:
+            g = graph.select(with_pressure.index_select(0, graph.edge_index[0]))
+            grad = ops.corrected_pressure_gradient(
+                pos, g.edge_index, pressure, radius, n0, geometry=g.geometry, **common
+            )
         return -grad / ctx.params.density

@@ -213,10 +213,14 @@ class KernelConv(MessagePassing):
 
         ``weight_sum`` (N, 1): ``sum_j w_ij`` per node, needed for ``aggregation="mean"``.
         """
-        msg = self.propagate(adj, x=x)
+        # W_e (A x) = A (x W_e^T): both linear maps as one (N, F) x (F, F) product, then the sparse product
+        # at width F/2 instead of F (half its cost; the profile in benchmarks/results/fgn_speed.md).
+        half = self.node_linear.out_features
+        both = nn.functional.linear(x, torch.cat([self.node_linear.weight, self.edge_linear.weight]))
+        msg = self.propagate(adj, x=both[:, half:].contiguous())
         if self.aggregation == "mean":
             msg = msg / weight_sum.clamp_min(1e-12)
-        return self.mlp(self.node_linear(x) + self.edge_linear(msg))
+        return self.mlp(both[:, :half] + msg + (self.node_linear.bias + self.edge_linear.bias))
 
     def message_and_aggregate(self, adj_t: Tensor, x: Tensor) -> Tensor:
         """``sum_j w_ij x_j`` as a CSR sparse-dense product (rows of ``adj_t`` are targets)."""
