@@ -663,6 +663,9 @@ def kernel_adjacency(edge_index: Tensor, weight: Tensor, num_nodes: int | tuple[
     if n_target < 0 or n_source < 0:
         raise ValueError(f"num_nodes must be >= 0, got {num_nodes!r}")
     j, i = edge_index[0].long(), edge_index[1].long()
+    crow = _compiled_row_pointer(i, j, n_target, n_source)
+    if crow is not None:  # sorted, each pair once, in range: checked and indexed in one compiled pass
+        return _csr(crow, j, weight, n_target, n_source)
     if e:
         for name, idx, size in (("target", i, n_target), ("source", j, n_source)):
             lo, hi = int(idx.min()), int(idx.max())
@@ -679,7 +682,32 @@ def kernel_adjacency(edge_index: Tensor, weight: Tensor, num_nodes: int | tuple[
                 raise ValueError(f"edge (j={int(j[k])}, i={int(i[k])}) appears more than once in edge_index")
     crow = torch.zeros(n_target + 1, dtype=torch.long, device=edge_index.device)
     crow[1:] = torch.cumsum(torch.bincount(i, minlength=n_target), 0)
+    return _csr(crow, j, weight, n_target, n_source)
+
+
+def _csr(crow: Tensor, col: Tensor, weight: Tensor, n_target: int, n_source: int) -> Tensor:
     with warnings.catch_warnings():
         # "Sparse CSR tensor support is in beta state": matmul and its autograd are what we use, tested.
         warnings.filterwarnings("ignore", message=".*Sparse CSR tensor support is in beta.*")
-        return torch.sparse_csr_tensor(crow, j, weight, size=(n_target, n_source), check_invariants=False)
+        return torch.sparse_csr_tensor(crow, col, weight, size=(n_target, n_source), check_invariants=False)
+
+
+def _compiled_row_pointer(i: Tensor, j: Tensor, n_target: int, n_source: int) -> Tensor | None:
+    """(n_target + 1,) CSR row pointer of pairs ``(i, j)`` sorted by ``i`` then ``j``, checked in one pass.
+
+    The pairs must be sorted, each once, in range; None when they are not (the torch path then sorts them
+    or reports the bad index) or off the CPU. The torch checks and ``bincount`` take ~8 passes over the
+    pairs (the step builds two such matrices of ~1.5M pairs at 40k particles: see
+    ``benchmarks/results/fgn_speed.md``).
+    """
+    from lagfluid import pair_kernels
+
+    kern = pair_kernels.load("lagfluid.physics._operators_numba")
+    if kern is None or i.device.type != "cpu" or i.numel() == 0:
+        return None
+    dst, src = i.contiguous().numpy(), j.contiguous().numpy()
+    pair_kernels.set_threads()
+    unordered, outside = kern.check_pairs(dst, src, n_target, n_source)
+    if unordered or outside:
+        return None
+    return torch.from_numpy(np.searchsorted(dst, np.arange(n_target + 1), side="left"))

@@ -429,6 +429,29 @@ def test_kernel_adjacency_matmul_equals_loop():
     assert kernel_adjacency(sub[:, :0], w_sub[:0], 5).to_dense().abs().sum() == 0
 
 
+def test_kernel_adjacency_compiled_row_pointer_equals_the_torch_build(monkeypatch):
+    # Sorted pairs take the one-pass compiled check; the CSR it builds is the torch path's, empty rows (the
+    # last ones too) included, and pairs out of order, repeated or out of range go to the torch path.
+    from lagfluid import neighbors
+
+    gen = torch.Generator().manual_seed(3)
+    pos = torch.rand(80, 3, generator=gen)
+    edges = radius_graph(pos, 0.3, receivers=torch.arange(80) < 70)  # rows 70..79 empty
+    w = torch.rand(edges.shape[1], generator=gen)
+    fast = kernel_adjacency(edges, w, 80)
+    if "numba" in available_backends():
+        assert neighbors._compiled_row_pointer(edges[1], edges[0], 80, 80) is not None
+    with monkeypatch.context() as m:
+        m.setattr(neighbors, "_compiled_row_pointer", lambda *a: None)
+        slow = kernel_adjacency(edges, w, 80)
+    for part in ("crow_indices", "col_indices", "values"):
+        assert torch.equal(getattr(fast, part)(), getattr(slow, part)()), part
+    swapped = edges.clone()
+    swapped[0, [0, 1]] = swapped[0, [1, 0]]  # two sources of one target out of order
+    assert neighbors._compiled_row_pointer(swapped[1], swapped[0], 80, 80) is None
+    assert int(edges[0].max()) == 79 and neighbors._compiled_row_pointer(edges[1], edges[0], 80, 79) is None
+
+
 def test_kernel_adjacency_rejects_bad_edges():
     edges = torch.tensor([[0, 1, 1], [1, 0, 0]])
     with pytest.raises(ValueError, match="more than once"):

@@ -27,6 +27,25 @@ def check_edges(dst, src, num_sources):
 
 
 @njit(parallel=True, cache=True)
+def check_pairs(dst, src, num_targets, num_sources):
+    """(places where ``(dst, src)`` does not strictly increase, indices outside their range).
+
+    (0, 0) for a graph sorted by target then source, each pair once, every index valid.
+    """
+    num = dst.shape[0]
+    chunks = (num + _CHUNK - 1) // _CHUNK
+    unordered = 0
+    outside = 0
+    for c in prange(chunks):
+        for e in range(c * _CHUNK, min(num, (c + 1) * _CHUNK)):
+            if e > 0 and (dst[e] < dst[e - 1] or (dst[e] == dst[e - 1] and src[e] <= src[e - 1])):
+                unordered += 1
+            if src[e] < 0 or src[e] >= num_sources or dst[e] < 0 or dst[e] >= num_targets:
+                outside += 1
+    return unordered, outside
+
+
+@njit(parallel=True, cache=True)
 def laplacian_rows(src, dist, values, row_ptr, re, r_min, scale, out):
     """The MPS Laplacian of ``values`` (N, C) into every row i of ``out`` (num_rows, C).
 
