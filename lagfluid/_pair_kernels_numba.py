@@ -153,3 +153,30 @@ def cell_any_within(pos, cell, order, cell_start, dims, reach, queries, is_targe
             if hit:
                 break
         out[q] = hit
+
+
+@njit(parallel=True, cache=True)
+def count_induced(src, dst, keep):
+    num = src.shape[0]
+    chunks = (num + _CHUNK - 1) // _CHUNK
+    counts = np.zeros(chunks + 1, dtype=np.int64)
+    for c in prange(chunks):
+        kept = 0
+        for e in range(c * _CHUNK, min(num, (c + 1) * _CHUNK)):
+            if keep[src[e]] and keep[dst[e]]:
+                kept += 1
+        counts[c + 1] = kept
+    return np.cumsum(counts)
+
+
+@njit(parallel=True, cache=True)
+def fill_induced(src, dst, keep, local, offsets, out_src, out_dst, out_pos):
+    num = src.shape[0]
+    for c in prange(offsets.shape[0] - 1):
+        k = offsets[c]
+        for e in range(c * _CHUNK, min(num, (c + 1) * _CHUNK)):
+            if keep[src[e]] and keep[dst[e]]:
+                out_src[k] = local[src[e]]
+                out_dst[k] = local[dst[e]]
+                out_pos[k] = e
+                k += 1

@@ -177,6 +177,27 @@ def select_below(
     return torch.from_numpy(out), torch.from_numpy(out_rel), torch.from_numpy(out_dist)
 
 
+def induced_edges(edge_index: Tensor, keep: Tensor, local: Tensor) -> tuple[Tensor, Tensor]:
+    """The edges between kept nodes, renumbered, and where they were (order kept).
+
+    Args:
+        edge_index: (2, E) int64 on the CPU.
+        keep: (N,) bool, the nodes kept.
+        local: (N,) int64, each kept node's new number.
+
+    Returns:
+        ``(edge_index (2, K) renumbered by local, positions (K,) of those edges in edge_index)``.
+    """
+    kern = _kernels()
+    src, dst, k = _as_numpy(edge_index[0]), _as_numpy(edge_index[1]), _as_numpy(keep)
+    offsets = kern.count_induced(src, dst, k)
+    kept = int(offsets[-1])
+    out = np.empty((2, kept), dtype=np.int64)
+    positions = np.empty(kept, dtype=np.int64)
+    kern.fill_induced(src, dst, k, _as_numpy(local), offsets, out[0], out[1], positions)
+    return torch.from_numpy(out), torch.from_numpy(positions)
+
+
 # The cell list keeps a dense table of cells: above this many cells per particle (a far-flung particle
 # stretching the box) the caller falls back to the k-d tree.
 _MAX_CELLS_PER_PARTICLE = 64

@@ -277,6 +277,25 @@ def test_compact_nodes_keeps_the_fluid_rows_and_renumbers_sources():
     assert local.tolist() == [[3, 1, 4, 3], [0, 0, 1, 2]]
 
 
+def test_induced_subgraph_compiled_and_torch_paths_agree(monkeypatch):
+    from lagfluid import pair_kernels
+    from lagfluid.models.fgn.stages import induced_subgraph
+
+    gen = torch.Generator().manual_seed(4)
+    edge_index = torch.randint(0, 50, (2, 400), generator=gen)
+    keep = torch.rand(50, generator=gen) > 0.4
+    nodes, sub, positions = induced_subgraph(edge_index, keep)
+    with monkeypatch.context() as m:
+        m.setattr(pair_kernels, "applies", lambda *a: False)
+        slow = induced_subgraph(edge_index, keep)
+    for fast, ref in zip((nodes, sub, positions), slow, strict=True):
+        assert torch.equal(fast, ref)
+    # by definition: the edges with both ends kept, in order, renumbered onto the kept nodes
+    both = keep[edge_index[0]] & keep[edge_index[1]]
+    assert positions.tolist() == torch.nonzero(both).flatten().tolist()
+    assert torch.equal(nodes[sub], edge_index[:, both]) and 0 < sub.shape[1] < 400
+
+
 # ------------------------------------------------------------------------------------ the authors' weights
 @pytest.fixture
 def authors_weights():

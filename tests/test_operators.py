@@ -664,3 +664,37 @@ def test_compiled_min_pressure_gradient_equals_the_torch_operations(monkeypatch,
     nan = p.clone()
     nan[ei[0, 0]] = float("nan")
     assert bool(torch.isnan(ops.min_pressure_gradient(pos, ei, nan, re, N0_21)[ei[1, 0]]).all())
+
+
+@pytest.mark.skipif(ops._operator_kernels() is None, reason="numba not installed")
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_compiled_number_density_equals_the_torch_operations(monkeypatch, dtype):
+    gen = torch.Generator().manual_seed(9)
+    pos = torch.rand(600, 3, generator=gen, dtype=dtype) * 0.4
+    pos = torch.cat([pos, pos[:1] + 1e-9])  # a near-coincident pair (r < 1e-8: weight 0)
+    re = 2.1 * L0
+    ei = brute_edges(pos, re)
+    for e, rows in ((ei, None), (ei[:, ei[1] < 250], 250), (ei[:, :0], None)):
+        fast = ops.number_density(pos, e, re, num_nodes=rows)
+        with monkeypatch.context() as m:
+            m.setattr(ops, "_compiled_number_density", lambda *a: None)
+            slow = ops.number_density(pos, e, re, num_nodes=rows)
+        assert fast.shape == slow.shape and torch.equal(fast, slow)
+    shuffled = ei[:, torch.randperm(ei.shape[1], generator=gen)]
+    assert ops._compiled_number_density(shuffled, ops.edge_geometry(pos, shuffled)[1], re, 601, 601) is None
+
+
+@pytest.mark.skipif(ops._operator_kernels() is None, reason="numba not installed")
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_compiled_kernel_equals_the_torch_operations(monkeypatch, dtype):
+    re = 2.1 * L0
+    gen = torch.Generator().manual_seed(10)
+    dist = torch.cat(
+        [torch.rand(20000, generator=gen, dtype=dtype) * 1.2 * re, torch.tensor([0.0, 1e-9, re], dtype=dtype)]
+    )
+    fast = ops.kernel(dist, re)
+    with monkeypatch.context() as m:
+        m.setattr(ops, "_compiled_kernel", lambda *a: None)
+        slow = ops.kernel(dist, re)
+    assert torch.equal(fast, slow) and fast.dtype == dtype
+    assert float(fast[-3:].abs().sum()) == 0.0 and bool((fast > 0).any())

@@ -111,3 +111,33 @@ def min_gradient_rows(
                 out[i, k] += (rel[e, k] * c) * dp
         for k in range(out.shape[1]):
             out[i, k] = out[i, k] * scale
+
+
+@njit(parallel=True, cache=True)
+def density_rows(dist, row_ptr, re, r_min, out):
+    """The number density ``out[i] = sum_e w(r_e)`` over row i's edges.
+
+    ``w = re / r - 1`` inside ``r_min < r < re``, else 0 (the torch path's arithmetic and edge order).
+    """
+    one = dist.dtype.type(1.0)
+    zero = dist.dtype.type(0.0)
+    for i in prange(out.shape[0]):
+        acc = zero
+        for e in range(row_ptr[i], row_ptr[i + 1]):
+            d = dist[e]
+            w = (one / d) * re - one
+            if not (d > r_min and d < re):
+                w = zero
+            acc += w
+        out[i] = acc
+
+
+@njit(parallel=True, cache=True)
+def kernel_weights(dist, re, r_min, out):
+    """``out[e] = re / r_e - 1`` inside ``r_min < r_e < re``, else 0 (the torch path's arithmetic)."""
+    one = dist.dtype.type(1.0)
+    zero = dist.dtype.type(0.0)
+    for e in prange(dist.shape[0]):
+        d = dist[e]
+        w = (one / d) * re - one
+        out[e] = w if (d > r_min and d < re) else zero

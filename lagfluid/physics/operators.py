@@ -62,6 +62,10 @@ def kernel(dist: Tensor, re: float) -> Tensor:
         Weights ``w_ij``, shape (E,), same dtype and device as ``dist``. Differentiable w.r.t. ``dist``
         (no NaN gradients at the excluded pairs).
     """
+    if dist.dim() == 1 and dist.numel() > _COMPILED_KERNEL_MIN:
+        fast = _compiled_kernel(dist, re)
+        if fast is not None:
+            return fast
     valid = (dist > _R_MIN) & (dist < re)
     if not (dist.requires_grad and torch.is_grad_enabled()):
         # The same numbers in fewer passes (the solver's hot path): ``re / t`` on a tensor is evaluated as
@@ -139,6 +143,9 @@ def number_density(
         Number densities, shape (N,). Rows without incoming edges are 0.
     """
     _, dist = edge_geometry(pos, edge_index, geometry)
+    fast = _compiled_number_density(edge_index, dist, re, _num_nodes(pos, num_nodes), pos.shape[0])
+    if fast is not None:
+        return fast
     return _scatter_sum(kernel(dist, re), edge_index[1], _num_nodes(pos, num_nodes))
 
 
@@ -630,6 +637,49 @@ def _compiled_min_gradient(
     kern.min_gradient_rows(
         src, r, d, p, mask, sources is not None, row_ptr, t(re), t(_R_MIN), t(scale), include_self, out
     )
+    return torch.from_numpy(out)
+
+
+_COMPILED_KERNEL_MIN = 4096  # below this many pairs the call costs more than the passes it saves
+
+
+def _compiled_kernel(dist: Tensor, re: float) -> Tensor | None:
+    """:func:`kernel` in one compiled pass (its ~6 elementwise passes fused), the torch path's numbers.
+
+    None off the CPU or with autograd.
+    """
+    from lagfluid import pair_kernels
+
+    kern = _operator_kernels()
+    if kern is None or not pair_kernels.applies(dist) or dist.dtype not in (torch.float32, torch.float64):
+        return None
+    d = dist.detach().contiguous().numpy()
+    out = np.empty_like(d)
+    pair_kernels.set_threads()
+    kern.kernel_weights(d, d.dtype.type(re), d.dtype.type(_R_MIN), out)
+    return torch.from_numpy(out)
+
+
+def _compiled_number_density(
+    edge_index: Tensor, dist: Tensor, re: float, num_nodes: int, num_sources: int
+) -> Tensor | None:
+    """:func:`number_density` in one compiled pass per target row, or None where it does not apply.
+
+    As :func:`_compiled_laplacian`: CPU, no autograd, edges sorted by target; the torch path's numbers to
+    the bit without the kernel's ~6 elementwise passes over the edges and the scatter.
+    """
+    from lagfluid import pair_kernels
+
+    kern = _operator_kernels()
+    if kern is None or not pair_kernels.applies(dist):
+        return None
+    rows = _sorted_rows(edge_index, num_sources, num_nodes)
+    if rows is None:
+        return None
+    d = dist.detach().contiguous().numpy()
+    out = np.empty(num_nodes, dtype=d.dtype)
+    t = d.dtype.type
+    kern.density_rows(d, rows[2], t(re), t(_R_MIN), out)
     return torch.from_numpy(out)
 
 
