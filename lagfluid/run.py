@@ -19,6 +19,7 @@ import hydra
 from omegaconf import DictConfig, open_dict
 
 from lagfluid.errors import LagfluidError, Terminated
+from lagfluid.memory import keep_freed_memory
 
 log = logging.getLogger("lagfluid")
 
@@ -189,6 +190,7 @@ def limit_openmp(argv: Sequence[str]) -> None:
 def main() -> None:
     """Entry point of ``python -m lagfluid.run``."""
     limit_openmp(sys.argv[1:])  # first: before anything imports torch
+    keep_freed_memory()  # before the first large allocation
     try:
         problem = check_command_line(sys.argv[1:])
         _register_plugin_configs()
