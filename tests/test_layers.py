@@ -26,6 +26,7 @@ LAYERS: dict[str, tuple[str, ...]] = {
         "lagfluid.retrain",  # the retrain-everything sweep of lagfluid.run
         "lagfluid.multirun_timer",  # a Hydra callback of every multirun
         "lagfluid.config",  # a run's setup from its config, shared by the tasks
+        "lagfluid.memory",  # the entry points' allocator setting (stdlib only)
         "lagfluid.outputs",  # a run's output files, replaced together
         "lagfluid.simulate",
         "lagfluid.simulate.*",
