@@ -16,14 +16,20 @@ Bounds: the machine's dense float32 matmul rate (2048^2 ``torch.mm``, median of 
 bandwidth)`` with the dense layers' FLOPs (2 M K N per ``nn.Linear``) and bytes read = the inputs' sizes
 (a lower bound of the traffic), so ``time / bound`` says how far each kind is from what the hardware
 allows. Results: ``benchmarks/results/fgn_speed.{md,csv}`` with provenance; compare numbers of one run only.
+
+``--rebuilds K``: also K forced rebuilds of the model's Verlet list at the warmed-up positions, under
+``cProfile``: each function's cumulative ms per rebuild (``<name>_rebuild.{md,csv}``), since over a whole
+flowing dam the rebuilds, not the per-step work, take most of the step (``fgn_step_speed.md``).
 """
 
 from __future__ import annotations
 
 import argparse
 import contextlib
+import cProfile
 import math
 import os
+import pstats
 import time
 from collections import defaultdict
 from collections.abc import Iterator, Sequence
@@ -180,6 +186,52 @@ def measure(
     return rows, summary
 
 
+def rebuild_profile(scene: str, warmup: int, rebuilds: int, model: str, threads: int) -> list[dict[str, Any]]:
+    """Cumulative ms per rebuild of each function in ``rebuilds`` forced rebuilds of the model's Verlet list.
+
+    The list is the simulator's own (its cutoff, skin and wall hops), after ``warmup`` steps; each rebuild is
+    ``reset()`` then ``update()`` at the same positions. Rows: the functions under ``update`` that take at
+    least 1 % of it, largest first, with their share of the whole rebuild.
+    """
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        cfg = compose(
+            config_name="config", overrides=[f"model={model}", f"scene={scene}", f"threads={threads}"]
+        )
+    state = build_initial_state(cfg)
+    sim = build_simulator(cfg)
+    state, _ = rollout(sim, state, warmup)
+    neighbors = sim.neighbors
+    neighbors.reset()
+    neighbors.update(state.pos, state.ptype)  # compiled kernels warm
+    profiler = cProfile.Profile()
+    for _ in range(rebuilds):
+        neighbors.reset()
+        profiler.enable()
+        neighbors.update(state.pos, state.ptype)
+        profiler.disable()
+    # (file, line, name) -> (calls, primitive calls, own time, cumulative time, callers)
+    stats = pstats.Stats(profiler).stats
+    total = max(cum for (_, _, _, cum, _) in stats.values())
+    rows = []
+    for (file, line, name), (calls, _, own, cum, _) in sorted(stats.items(), key=lambda kv: -kv[1][3]):
+        if cum < 0.01 * total:
+            break
+        where = f"{Path(file).name}:{line}" if file != "~" else "built-in"
+        rows.append(
+            {
+                "scene": scene,
+                "fluid": state.n_fluid,
+                "candidates": int(neighbors.candidates.shape[1]),
+                "function": f"{name} ({where})",
+                "calls_per_rebuild": round(calls / rebuilds, 1),
+                "ms_per_rebuild": round(1e3 * cum / rebuilds, 2),
+                "own_ms_per_rebuild": round(1e3 * own / rebuilds, 2),
+                "share": round(cum / total, 3),
+            }
+        )
+    return rows
+
+
 def with_bounds(rows: list[dict[str, Any]], rates: dict[str, float]) -> list[dict[str, Any]]:
     """Each row with its bound (ms) and time / bound."""
     out = []
@@ -211,6 +263,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--results", default=str(RESULTS))
     parser.add_argument("--name", default="fgn_speed")
+    parser.add_argument("--rebuilds", type=int, default=0, help="also profile K forced Verlet-list rebuilds")
     args = parser.parse_args(argv)
     load = os.getloadavg()[0]
     torch.set_num_threads(args.threads)
@@ -236,6 +289,19 @@ def main(argv: Sequence[str] | None = None) -> int:
     prov = provenance("benchmarks.fgn_speed", load, threads=str(args.threads))
     write_results(Path(args.results), args.name, rows, intro, prov)
     print(f"wrote {Path(args.results) / args.name}.md")
+    if args.rebuilds > 0:
+        rebuild_rows = []
+        for scene in args.scenes:
+            rebuild_rows += rebuild_profile(scene, args.warmup, args.rebuilds, args.model, args.threads)
+        intro = (
+            f"# Where a rebuild of {args.model}'s Verlet list goes (`benchmarks/fgn_speed.py --rebuilds "
+            f"{args.rebuilds}`)\n\nThe simulator's own list after {args.warmup} steps, rebuilt "
+            f"{args.rebuilds} times at the same positions under cProfile (which adds a little to each "
+            "Python call): each function's cumulative and own ms per rebuild and its share of the whole "
+            "`update`."
+        )
+        write_results(Path(args.results), f"{args.name}_rebuild", rebuild_rows, intro, prov)
+        print(f"wrote {Path(args.results) / args.name}_rebuild.md")
     return 0
 
 

@@ -37,3 +37,16 @@ def test_a_profile_of_the_small_dam(tmp_path):
         ) == 0  # not counted dense
     assert float(cells[("neighbors", "compiled/python")]["ms"]) > 0  # the Numba filter, outside torch ops
     assert "GFLOP/s" in (tmp_path / "fgn_speed.md").read_text()
+
+
+def test_a_rebuild_profile_names_the_verlet_lists_parts(tmp_path):
+    argv = ["--scenes", "dam_small", "--warmup", "1", "--steps", "1", "--threads", "1"]
+    assert main([*argv, "--rebuilds", "2", "--results", str(tmp_path)]) == 0
+    with open(tmp_path / "fgn_speed_rebuild.csv") as f:
+        rows = list(csv.DictReader(f))
+    top = rows[0]
+    assert top["function"].startswith("update (neighbor_list.py") and float(top["share"]) == 1.0
+    assert float(top["calls_per_rebuild"]) == 1.0 and int(top["candidates"]) > 0
+    names = [r["function"] for r in rows]
+    assert any(n.startswith("_search_with_cells") for n in names)  # the compiled cell search was profiled
+    assert all(0 < float(r["share"]) <= 1 for r in rows)
