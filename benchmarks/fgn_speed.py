@@ -149,10 +149,8 @@ def attribute(events: Any, steps: int) -> dict[tuple[str, str], dict[str, float]
     return out
 
 
-def measure(
-    scene: str, warmup: int, steps: int, model: str, threads: int
-) -> tuple[list[dict[str, Any]], dict]:
-    """The profile rows of ``model`` on ``scene`` and its plain step times (median ms)."""
+def warmed_up(scene: str, warmup: int, model: str, threads: int) -> tuple[Any, Any]:
+    """``model``'s simulator on ``scene`` and its state after ``warmup`` steps (lazy set-up done)."""
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         cfg = compose(
             config_name="config", overrides=[f"model={model}", f"scene={scene}", f"threads={threads}"]
@@ -160,6 +158,14 @@ def measure(
     state = build_initial_state(cfg)
     sim = build_simulator(cfg)
     state, _ = rollout(sim, state, warmup)
+    return sim, state
+
+
+def measure(
+    scene: str, warmup: int, steps: int, model: str, threads: int
+) -> tuple[list[dict[str, Any]], dict]:
+    """The profile rows of ``model`` on ``scene`` and its plain step times (median ms)."""
+    sim, state = warmed_up(scene, warmup, model, threads)
     state, plain = rollout(sim, state, steps, reset=False)  # unprofiled: the honest step time
     with (
         stages_as_profiler_ranges(),
@@ -193,13 +199,7 @@ def rebuild_profile(scene: str, warmup: int, rebuilds: int, model: str, threads:
     ``reset()`` then ``update()`` at the same positions. Rows: the functions under ``update`` that take at
     least 1 % of it, largest first, with their share of the whole rebuild.
     """
-    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        cfg = compose(
-            config_name="config", overrides=[f"model={model}", f"scene={scene}", f"threads={threads}"]
-        )
-    state = build_initial_state(cfg)
-    sim = build_simulator(cfg)
-    state, _ = rollout(sim, state, warmup)
+    sim, state = warmed_up(scene, warmup, model, threads)
     neighbors = sim.neighbors
     neighbors.reset()
     neighbors.update(state.pos, state.ptype)  # compiled kernels warm
