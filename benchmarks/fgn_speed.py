@@ -44,9 +44,11 @@ from torch.profiler import ProfilerActivity, profile, record_function
 from benchmarks.provenance import provenance, write_results
 from lagfluid.config import build_initial_state, build_simulator
 from lagfluid.memory import keep_freed_memory
+from lagfluid.models.simulator import Simulator
 from lagfluid.physics.stages import StageTimer
 from lagfluid.rollout import rollout
 from lagfluid.run import CONF_DIR
+from lagfluid.state import ParticleState
 
 RESULTS = Path(__file__).resolve().parent / "results"
 # The networks' dense layers are nn.Linear (aten::linear); a matmul called directly in a stage is one of the
@@ -149,7 +151,7 @@ def attribute(events: Any, steps: int) -> dict[tuple[str, str], dict[str, float]
     return out
 
 
-def warmed_up(scene: str, warmup: int, model: str, threads: int) -> tuple[Any, Any]:
+def warmed_up(scene: str, warmup: int, model: str, threads: int) -> tuple[Simulator, ParticleState]:
     """``model``'s simulator on ``scene`` and its state after ``warmup`` steps (lazy set-up done)."""
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         cfg = compose(
