@@ -51,10 +51,16 @@ OUTPUTS = ("rollout.h5", "metrics.json", "preview.png")
 
 
 def timing_summary(record: dict[str, Any]) -> dict[str, Any]:
-    """Median time per step and per stage, steps per second and PPE statistics of a rollout record."""
+    """Median and mean time per step, median per stage, steps per second and PPE statistics of a record.
+
+    The median is a typical step; the mean is what a whole rollout costs per step. They differ where some
+    steps carry rare, costly work: a flowing 40k dam rebuilds its Verlet list every few steps, and FGN's mean
+    step there is ~1.4x its median (``benchmarks/results/neighbors_notes.md``, the Verlet skin).
+    """
     steps = record["step_seconds"]
     out: dict[str, Any] = {
         "time_per_step_median_s": median(steps) if steps else math.nan,
+        "time_per_step_mean_s": sum(steps) / len(steps) if steps else math.nan,
         "steps_per_second": 1.0 / median(steps) if steps else math.nan,
         "stage_median_s": {k: median(v) for k, v in record["stage_seconds"].items()},
     }

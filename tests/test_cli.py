@@ -193,6 +193,7 @@ def test_debug_experiment_writes_the_three_outputs(tmp_path):
     saved = json.loads((tmp_path / "metrics.json").read_text())
     assert saved["steps"] == 4 and saved["complete"] and saved["model"] == "mps"
     assert saved == json.loads(json.dumps(metrics))
+    assert 0 < saved["time_per_step_median_s"] and 0 < saved["time_per_step_mean_s"]
     traj = read_trajectory(tmp_path / "rollout.h5")
     assert traj["position"].shape[0] == 3  # frames 0, 2, 4
     assert traj["attrs"]["dt"] == cfg.scene.params.dt and "n0" in traj["attrs"]
@@ -478,3 +479,11 @@ def test_a_sweep_composes_for_slurm_through_hydras_submitit_launcher():
     assert launcher._target_ == "hydra_plugins.hydra_submitit_launcher.submitit_launcher.SlurmLauncher"
     assert (launcher.partition, launcher.timeout_min, launcher.cpus_per_task) == ("cpu", 180, 2)
     assert local.hydra.launcher._target_.endswith("JoblibLauncher")
+
+
+def test_timing_summary_gives_the_whole_runs_mean_beside_the_typical_median():
+    from lagfluid.simulate import timing_summary
+
+    # three cheap steps and one with a neighbour-list rebuild: the median hides the rebuild, the mean does not
+    summary = timing_summary({"step_seconds": [1.0, 1.0, 1.0, 5.0], "stage_seconds": {}, "info": {}})
+    assert summary["time_per_step_median_s"] == 1.0 and summary["time_per_step_mean_s"] == 2.0
