@@ -154,3 +154,22 @@ def test_cell_list_rejects_non_finite_positions_by_name():
     bad[3, 2] = float("inf")
     with pytest.raises(ValueError, match="particle 3"):
         VerletNeighborList(3.1 * 0.05, 0.3 * 0.05).graph(bad, state.ptype, 3.1 * 0.05)
+
+
+@pytest.mark.parametrize("numbering", ["lattice", "random"])
+def test_cell_search_pairs_are_sorted_and_exact_whatever_the_particle_numbering(numbering):
+    """Lattice numbering takes the insertion sort's cheap path; a random one exhausts its budget (full sort)."""
+    from lagfluid.neighbors import radius_graph
+
+    state = build_scene("dam", fluid_size=[10, 8, 6], tank_size=[14, 10])
+    pos = state.pos + 1e-3 * torch.randn_like(state.pos)  # off the lattice: no distance ties at the cut
+    if numbering == "random":
+        pos = pos[torch.randperm(pos.shape[0], generator=torch.Generator().manual_seed(0))]
+    radius = 2.73 * 0.05
+    receivers = torch.arange(0, pos.shape[0], 3)
+    got = pair_kernels.CellList.build(pos, radius).pairs(receivers)
+    is_receiver = torch.zeros(pos.shape[0], dtype=torch.bool)
+    is_receiver[receivers] = True
+    want = radius_graph(pos, radius, receivers=is_receiver, backend="brute")
+    assert got.shape[1] > 20 * receivers.numel()  # a full neighbourhood each
+    assert torch.equal(got, want)  # sorted by target, then source, as every backend
