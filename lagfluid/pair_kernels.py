@@ -259,7 +259,7 @@ class CellList:
         """
         kern = _kernels()
         recv = _as_numpy(receivers).astype(np.int64)
-        pos, cell, order, cell_start, dims, reach = self._args
+        pos, cell, _, cell_start, dims, reach = self._args
         # One distance pass: each receiver gets room for every particle of its scanned cells (~3.5x its
         # pairs), then the kept pairs are packed; cheaper than counting first (neighbors_notes.md).
         sizes = np.zeros(recv.shape[0] + 1, dtype=np.int64)

@@ -158,7 +158,7 @@ def test_cell_list_rejects_non_finite_positions_by_name():
 
 @pytest.mark.parametrize("numbering", ["lattice", "random"])
 def test_cell_search_pairs_are_sorted_and_exact_whatever_the_particle_numbering(numbering):
-    """Lattice numbering takes the insertion sort's cheap path; a random one exhausts its budget (full sort)."""
+    """Lattice numbering takes the insertion sort's cheap path; a random one exhausts its budget."""
     from lagfluid.neighbors import radius_graph
 
     state = build_scene("dam", fluid_size=[10, 8, 6], tank_size=[14, 10])
