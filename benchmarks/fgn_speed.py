@@ -42,7 +42,7 @@ from hydra import compose, initialize_config_dir
 from torch.profiler import ProfilerActivity, profile, record_function
 
 from benchmarks.provenance import provenance, write_results
-from lagfluid.config import build_initial_state, build_simulator
+from lagfluid.config import at_simulator_time_step, build_initial_state, build_simulator
 from lagfluid.memory import keep_freed_memory
 from lagfluid.models.simulator import Simulator
 from lagfluid.physics.stages import StageTimer
@@ -157,8 +157,8 @@ def warmed_up(scene: str, warmup: int, model: str, threads: int) -> tuple[Simula
         cfg = compose(
             config_name="config", overrides=[f"model={model}", f"scene={scene}", f"threads={threads}"]
         )
-    state = build_initial_state(cfg)
     sim = build_simulator(cfg)
+    state = at_simulator_time_step(build_initial_state(cfg), sim, cfg)  # GNS steps by its frame spacing
     state, _ = rollout(sim, state, warmup)
     return sim, state
 

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import json
 import math
-import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -24,6 +23,7 @@ from torch import Tensor
 from lagfluid.errors import ConfigError, RolloutError
 from lagfluid.models.checkpoint import CheckpointError, read_checkpoint
 from lagfluid.models.training_range import RangeWarner, checkpoint_range
+from lagfluid.physics.stages import StageTimer
 from lagfluid.state import ParticleState
 
 from .boundary import surface_points
@@ -134,17 +134,17 @@ class CConvSimulator:
             raise RolloutError(f"{self.name}: call reset(state) before step()")
         if abs(state.params.dt - self.dt) > 1e-9:
             raise RolloutError(f"{self.name} steps by {self.dt} s, the state has dt {state.params.dt}")
-        start = time.perf_counter()
+        timer, device = StageTimer(), state.pos.device
         nf, net, axes = state.n_fluid, self.net, self.axes
-        pos = state.pos[:nf].to(axes.dtype) @ axes.T
-        vel = state.vel[:nf].to(axes.dtype) @ axes.T
-        pos2, vel2 = net.integrate_pos_vel(pos, vel)
-        fluid_geo, obstacle_geo = net.geometries(pos2, self._box)
-        searched = time.perf_counter()
-        new_pos = pos2 + net.correction(fluid_geo, obstacle_geo, vel2, None, self._box_normals)
-        new_vel = (new_pos - pos) / net.timestep
-        end = time.perf_counter()
-        self._timings = {"neighbors": searched - start, "network": end - searched}
+        with timer("neighbors", device):
+            pos = state.pos[:nf].to(axes.dtype) @ axes.T
+            vel = state.vel[:nf].to(axes.dtype) @ axes.T
+            pos2, vel2 = net.integrate_pos_vel(pos, vel)
+            fluid_geo, obstacle_geo = net.geometries(pos2, self._box)
+        with timer("network", device):
+            new_pos = pos2 + net.correction(fluid_geo, obstacle_geo, vel2, None, self._box_normals)
+            new_vel = (new_pos - pos) / net.timestep
+        self._timings = dict(timer.seconds)
         self.last_info = {
             "fluid_pairs": float(fluid_geo.num_neighbors.sum()),
             "surface_points": float(len(self._box)),

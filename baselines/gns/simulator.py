@@ -14,7 +14,6 @@ returned by the first ``H`` calls of :meth:`GNSSimulator.step` and timed as ``mp
 
 from __future__ import annotations
 
-import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -29,6 +28,7 @@ from lagfluid.models.checkpoint import read_checkpoint
 from lagfluid.models.mps_simulator import build_mps
 from lagfluid.models.simulator import Simulator
 from lagfluid.models.training_range import RangeWarner, checkpoint_range
+from lagfluid.physics.stages import StageTimer
 from lagfluid.state import ParticleState
 
 from .graph import build_graph, fluid_acceleration
@@ -164,20 +164,20 @@ class GNSSimulator:
         if self._warm_frames:
             new, velocity = self._warm_step(state)
         else:
-            start = time.perf_counter()
+            timer, device = StageTimer(), state.pos.device
             net = self.net
             dtype = net.velocity.mean.dtype
             pos = state.pos.to(dtype)
             radius = net.radius * state.params.l0
-            graph = build_graph(pos, state.fluid_mask, radius)
-            searched = time.perf_counter()
-            bounds = None if state.bounds is None else state.bounds.to(dtype)
-            acc = fluid_acceleration(net, pos, self._velocities.to(dtype), graph, bounds, radius)
-            acc = net.acceleration.inverse(acc).to(state.dtype)
-            fluid_pos, velocity = semi_implicit_euler(state.pos[:nf], self._velocities[:, -1], acc, dt)
-            new = state.advanced_fluid(fluid_pos, velocity, dt)
-            end = time.perf_counter()
-            self._timings = {"neighbors": searched - start, "network": end - searched}
+            with timer("neighbors", device):
+                graph = build_graph(pos, state.fluid_mask, radius)
+            with timer("network", device):
+                bounds = None if state.bounds is None else state.bounds.to(dtype)
+                acc = fluid_acceleration(net, pos, self._velocities.to(dtype), graph, bounds, radius)
+                acc = net.acceleration.inverse(acc).to(state.dtype)
+                fluid_pos, velocity = semi_implicit_euler(state.pos[:nf], self._velocities[:, -1], acc, dt)
+                new = state.advanced_fluid(fluid_pos, velocity, dt)
+            self._timings = dict(timer.seconds)
             self.last_info = {"graph_edges": float(graph.edge_index.shape[1])}
         self._velocities = torch.cat([self._velocities[:, 1:], velocity.unsqueeze(1)], dim=1)
         self._next_step = new.step
@@ -188,16 +188,16 @@ class GNSSimulator:
 
         The MPS solver continues from its own state (its velocities are not the frames' differences).
         """
-        start = time.perf_counter()
-        nf = state.n_fluid
-        mps = self._mps
-        for _ in range(self._substeps):
-            mps = self.warm_start.step(mps)
-        self._mps = mps
-        self._warm_frames -= 1
-        velocity = (mps.pos[:nf] - state.pos[:nf]) / state.params.dt
-        new = state.advanced_fluid(mps.pos[:nf], mps.vel[:nf], state.params.dt, pressure=mps.pressure)
-        self._timings = {"mps_warm_start": time.perf_counter() - start}
+        timer, nf = StageTimer(), state.n_fluid
+        with timer("mps_warm_start", state.pos.device):
+            mps = self._mps
+            for _ in range(self._substeps):
+                mps = self.warm_start.step(mps)
+            self._mps = mps
+            self._warm_frames -= 1
+            velocity = (mps.pos[:nf] - state.pos[:nf]) / state.params.dt
+            new = state.advanced_fluid(mps.pos[:nf], mps.vel[:nf], state.params.dt, pressure=mps.pressure)
+        self._timings = dict(timer.seconds)
         self.last_info = {}
         return new, velocity
 
