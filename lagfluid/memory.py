@@ -10,12 +10,9 @@ import sys
 log = logging.getLogger(__name__)
 
 # glibc's mallopt parameters (malloc.h)
-_M_TRIM_THRESHOLD, _M_TOP_PAD, _M_MMAP_MAX = -1, -2, -4
+_M_TRIM_THRESHOLD, _M_TOP_PAD, _M_MMAP_THRESHOLD = -1, -2, -3
 _SETTINGS = {
-    # No block from a fresh mmap: raising the threshold (at most 32 MiB) still left every larger tensor
-    # (GNS's (E, 48) edge latents, 250 MB at 40,000 particles) to page faults each time; the main heap
-    # serves them all (glibc still maps memory where a heap cannot grow).
-    _M_MMAP_MAX: 0,
+    _M_MMAP_THRESHOLD: 32 << 20,  # glibc's largest: blocks up to 32 MiB come from the heap, not fresh mmap
     _M_TRIM_THRESHOLD: 1 << 30,  # keep up to 1 GiB of free heap instead of returning it after every step
     _M_TOP_PAD: 256 << 20,  # grow the heap in 256 MiB steps
 }
@@ -27,8 +24,7 @@ def keep_freed_memory() -> bool:
     A simulation step allocates and frees the same few hundred MB of tensors every step. By default glibc
     serves large blocks with fresh ``mmap`` pages and trims the heap after frees, so every step pays a page
     fault per 4 KiB it touches again (~40k per step at 40,000 particles); kept, FGN's step at 40,000 fluid
-    particles went from 132 to 112 ms on 2 cores, and with no block above 32 MiB mapped afresh GNS's went
-    from 4.9 to 2.6 s, CConv's from 1.9 to 1.6 s (``benchmarks/results/fgn_step_speed.md``). The price: the
+    particles went from 132 to 112 ms on 2 cores (``benchmarks/results/fgn_step_speed.md``). The price: the
     process keeps its peak memory until it ends. Called by the command-line entry points, not on import.
 
     Returns:
