@@ -532,3 +532,23 @@ def test_a_resumed_training_ends_with_the_uninterrupted_runs_weights(step_data, 
         )  # fmt: skip
 
     assert_exact_resume(config_for, "cconv")
+
+
+def test_compiled_blocks_of_kernel_cells_equal_the_torch_selection(monkeypatch):
+    from lagfluid import pair_kernels
+
+    if not pair_kernels.available():
+        pytest.skip("numba not installed")
+    pos, _ = _cloud(150)
+    box = pos[:40] + 0.05
+    for inp, out in ((pos, pos), (box, pos)):
+        pairs = conv_pairs(inp, None if out is inp else out, 0.3)
+        compiled = conv_geometry(inp, out, pairs, 0.3, chunk_cells=5)
+        with monkeypatch.context() as m:
+            m.setattr(pair_kernels, "applies", lambda *tensors: False)
+            plain = conv_geometry(inp, out, pairs, 0.3, chunk_cells=5)
+        assert len(compiled.chunks) == len(plain.chunks) == 13
+        for a, b in zip(compiled.chunks, plain.chunks, strict=True):
+            assert torch.equal(a.crow_indices(), b.crow_indices())
+            assert torch.equal(a.col_indices(), b.col_indices()) and torch.equal(a.values(), b.values())
+            assert a.values().numel() > 0
