@@ -98,7 +98,11 @@ def _cell_run(cell, cell_start, dims, reach, i, cz, cy):
 
 @njit(parallel=True, cache=True)
 def cell_scan_sizes(cell, cell_start, dims, reach, recv, sizes):
-    """``sizes[r + 1]``: the particles in the cells scanned around recv[r], a bound on its pair count."""
+    """``sizes[r + 1]``: the particles in the cells scanned around recv[r], a bound on its pair count.
+
+    cell: (N, 4) int64 cell coordinates (graph id, cz, cy, cx); cell_start: (prod(dims) + 1,) where each
+    cell's particles start in ``order`` (the particles sorted by cell key; dense table); recv: (R,) int64.
+    """
     for r in prange(recv.shape[0]):
         i = recv[r]
         total = 0

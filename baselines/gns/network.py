@@ -50,9 +50,8 @@ def mlp(sizes: Sequence[int], *, layer_norm: bool) -> nn.Sequential:
     for k in range(1, len(sizes)):
         layers.append(nn.Linear(sizes[k - 1], sizes[k]))
         if k != len(sizes) - 1:
-            layers.append(
-                nn.ReLU(inplace=True)
-            )  # on the linear layer's fresh output: one (E, hidden) array less
+            # in place on the linear layer's fresh output: one (E, hidden) array less
+            layers.append(nn.ReLU(inplace=True))
     if layer_norm:
         layers.append(nn.LayerNorm(sizes[-1]))
     return nn.Sequential(*layers)
