@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import torch
 from torch import Tensor
@@ -60,12 +60,15 @@ class Graph:
         rel: (E, 3) ``x_j - x_i``.
         dist: (E,) ``|x_j - x_i|``.
         radius: the radius in metres (every edge has ``dist < radius``).
+        first_counts: ``{n: k}``: the first ``k`` edges are those into particles ``0 .. n-1`` (what
+            :meth:`into_first` found, or the builder knew); on CUDA each count read is a host synchronisation.
     """
 
     edge_index: Tensor
     rel: Tensor
     dist: Tensor
     radius: float
+    first_counts: dict[int, int] = field(default_factory=dict, repr=False, compare=False)
 
     def within(self, radius: float) -> Graph:
         """Sub-graph with ``dist < radius`` (``radius`` must not exceed this graph's radius)."""
@@ -95,8 +98,11 @@ class Graph:
 
         Edges are sorted by target, so this is a slice (a view, no copy) rather than a mask.
         """
-        k = int(torch.searchsorted(self.edge_index[1], torch.tensor(n, device=self.edge_index.device)))
-        return Graph(self.edge_index[:, :k], self.rel[:k], self.dist[:k], self.radius)
+        k = self.first_counts.get(n)
+        if k is None:
+            k = int(torch.searchsorted(self.edge_index[1], torch.tensor(n, device=self.edge_index.device)))
+            self.first_counts[n] = k
+        return Graph(self.edge_index[:, :k], self.rel[:k], self.dist[:k], self.radius, {n: k})
 
     @property
     def geometry(self) -> tuple[Tensor, Tensor]:
@@ -126,6 +132,7 @@ class VerletNeighborList:
         self._fluid_prefix = 0  # candidates[:, :_fluid_prefix] are the pairs into fluid particles
         self._built_at: Tensor | None = None
         self._static: _WallRows | None = None
+        self._fluid_rows: tuple[Tensor, int, int] | None = None  # (ptype, its _version, its FLUID count)
         self.builds = 0
 
     @property
@@ -150,10 +157,21 @@ class VerletNeighborList:
         boundary = self._static.boundary_at if self._static is not None else None
         if boundary is None or boundary.dtype != pos.dtype or boundary.device != pos.device:
             return True
-        if not torch.equal(pos[n_fluid:], boundary):
+        if boundary.shape != pos[n_fluid:].shape:
             return True
-        moved = (pos[:n_fluid] - self._built_at).norm(dim=1)
-        return bool(moved.max() > 0.5 * self.skin) if n_fluid else False
+        # One read of the device for both tests (on CUDA each read is a host synchronisation).
+        stale = (pos[n_fluid:] != boundary).any()
+        if n_fluid:
+            stale |= (pos[:n_fluid] - self._built_at).norm(dim=1).max() > 0.5 * self.skin
+        return bool(stale)
+
+    def _fluid_count(self, ptype: Tensor) -> int:
+        """The FLUID rows of ``ptype`` (N,), counted once per ``ptype`` tensor (a read of the device)."""
+        seen = self._fluid_rows
+        if seen is None or seen[0] is not ptype or seen[1] != ptype._version:
+            seen = (ptype, ptype._version, int((ptype == ParticleType.FLUID).sum()))
+            self._fluid_rows = seen
+        return seen[2]
 
     def update(self, pos: Tensor, ptype: Tensor) -> bool:
         """Rebuild the candidate list if needed; returns True when it searched.
@@ -162,7 +180,7 @@ class VerletNeighborList:
             pos: (N, 3) positions, fluid rows first (see :mod:`lagfluid.state`).
             ptype: (N,) particle types.
         """
-        n_fluid = int((ptype == ParticleType.FLUID).sum())
+        n_fluid = self._fluid_count(ptype)
         if not self.needs_rebuild(pos, n_fluid):
             return False
         r = self.list_radius
@@ -268,10 +286,11 @@ class VerletNeighborList:
         rel, dist = edge_vectors(pos, into_fluid)
         # nonzero + index_select rather than boolean indexing: faster on the CPU for (E, 3) arrays.
         keep = torch.nonzero(dist < radius).flatten()
+        k = keep.numel()
+        nf = self._fluid_count(ptype)  # the first k edges are those into the fluid
         if not with_walls:
-            return Graph(
-                take_edges(into_fluid, keep), rel.index_select(0, keep), dist.index_select(0, keep), radius
-            )
+            edge_index = take_edges(into_fluid, keep)
+            return Graph(edge_index, rel.index_select(0, keep), dist.index_select(0, keep), radius, {nf: k})
         # Wall rows: only the pairs with a fluid source move; the boundary-boundary pairs (most of them)
         # keep the distances computed at the last build.
         w_rel, w_dist, from_fluid = walls.geometry(pos)
@@ -280,26 +299,26 @@ class VerletNeighborList:
             # Wall targets: exactly the walls within `wall_hops` hops (of length `cutoff`) of the fluid at
             # these positions. The list holds more (walls within reach at its last build), but a set that
             # depended on when the list was rebuilt would make wall pressures depend on history.
-            active = self._hops_from(walls.dyn_dst[from_fluid < self.cutoff], pos)
+            active = self._hops_from(walls.dyn_dst, pos, from_fluid < self.cutoff)
             within &= active.index_select(0, walls.candidates[1])
         w_keep = torch.nonzero(within).flatten()
         # Wall targets come after every fluid target, so fluid rows then wall rows stay sorted by target.
         # Gathered straight into the two halves of one output rather than gathered then concatenated:
         # a concatenation pass costs a large share of this method (see benchmarks/results/neighbors_notes.md).
-        k, e = keep.numel(), keep.numel() + w_keep.numel()
+        e = k + w_keep.numel()
         edge_index = into_fluid.new_empty((2, e))
         take_edges(into_fluid, keep, out=edge_index[:, :k])
         take_edges(walls.candidates, w_keep, out=edge_index[:, k:])
         if rel.requires_grad:  # out= records no autograd history: concatenate (differentiable)
             out_rel = torch.cat([rel.index_select(0, keep), w_rel.index_select(0, w_keep)])
             out_dist = torch.cat([dist.index_select(0, keep), w_dist.index_select(0, w_keep)])
-            return Graph(edge_index, out_rel, out_dist, radius)
+            return Graph(edge_index, out_rel, out_dist, radius, {nf: k})
         out_rel, out_dist = rel.new_empty((e, rel.shape[1])), dist.new_empty(e)
         torch.index_select(rel, 0, keep, out=out_rel[:k])
         torch.index_select(w_rel, 0, w_keep, out=out_rel[k:])
         torch.index_select(dist, 0, keep, out=out_dist[:k])
         torch.index_select(w_dist, 0, w_keep, out=out_dist[k:])
-        return Graph(edge_index, out_rel, out_dist, radius)
+        return Graph(edge_index, out_rel, out_dist, radius, {nf: k})
 
     def wall_targets(self, pos: Tensor, ptype: Tensor) -> Tensor | None:
         """(N,) bool: the walls that are graph targets at ``pos`` (N, 3); None when every wall is one.
@@ -315,7 +334,7 @@ class VerletNeighborList:
             return torch.zeros(pos.shape[0], dtype=torch.bool, device=pos.device)
         if pair_kernels.applies(pos):
             return self._active_walls(pos)
-        return self._hops_from(walls.dyn_dst[walls.geometry(pos)[2] < self.cutoff], pos)
+        return self._hops_from(walls.dyn_dst, pos, walls.geometry(pos)[2] < self.cutoff)
 
     def closest_static_pair(self) -> float:
         """The shortest pair between boundary particles into a wall target under the cutoff, m (inf if none).
@@ -332,18 +351,22 @@ class VerletNeighborList:
         near, _, _ = pair_kernels.pairs_within(pos, [self._static.dyn_edges], self.cutoff)
         return self._hops_from(near[1], pos)
 
-    def _hops_from(self, first: Tensor, pos: Tensor) -> Tensor:
+    def _hops_from(self, first: Tensor, pos: Tensor, where: Tensor | None = None) -> Tensor:
         """(N,) bool: the walls ``first`` (indices) and ``wall_hops - 1`` hops beyond them.
 
-        ``first``: the walls within the cutoff of a fluid particle; a hop is a static wall-to-wall pair
-        closer than the cutoff.
+        ``first``: the walls within the cutoff of a fluid particle, or with ``where`` (same shape, bool)
+        those of ``first`` where it is True; a hop is a static wall-to-wall pair closer than the cutoff.
+        Scatters rather than boolean indexing: no data-dependent size, so no host synchronisation on CUDA.
         """
         walls = self._static
-        active = torch.zeros(pos.shape[0], dtype=torch.bool, device=pos.device)
-        active[first] = True
+        active = torch.zeros(pos.shape[0], dtype=torch.uint8, device=pos.device)
+        if where is None:
+            active[first] = 1
+        else:
+            active.scatter_reduce_(0, first, where.to(torch.uint8), "amax")
         for _ in range(self.wall_hops - 1):
-            active[walls.hop_dst[active.index_select(0, walls.hop_src)]] = True
-        return active
+            active.scatter_reduce_(0, walls.hop_dst, active.index_select(0, walls.hop_src), "amax")
+        return active.bool()
 
 
 @dataclass

@@ -667,21 +667,23 @@ def kernel_adjacency(edge_index: Tensor, weight: Tensor, num_nodes: int | tuple[
     if crow is not None:  # sorted, each pair once, in range: checked and indexed in one compiled pass
         return _csr(crow, j, weight, n_target, n_source)
     if e:
-        for name, idx, size in (("target", i, n_target), ("source", j, n_source)):
-            lo, hi = int(idx.min()), int(idx.max())
+        key = i * n_source + j
+        # The range and order checks in one read of the device (on CUDA each read is a synchronisation).
+        checks = [i.min(), i.max(), j.min(), j.max(), (key[1:] <= key[:-1]).any().long()]
+        lo_i, hi_i, lo_j, hi_j, unordered = torch.stack(checks).tolist()
+        for name, lo, hi, size in (("target", lo_i, hi_i, n_target), ("source", lo_j, hi_j, n_source)):
             if lo < 0 or hi >= size:
                 raise ValueError(f"{name} index out of range [0, {size}): min {lo}, max {hi}")
-        key = i * n_source + j
-        step = key[1:] - key[:-1]
-        if bool((step <= 0).any()):
+        if unordered:
             order = torch.argsort(key)
             i, j, weight, key = i[order], j[order], weight[order], key[order]
             repeated = key[1:] == key[:-1]
             if bool(repeated.any()):
                 k = int(torch.nonzero(repeated)[0, 0])
                 raise ValueError(f"edge (j={int(j[k])}, i={int(i[k])}) appears more than once in edge_index")
-    crow = torch.zeros(n_target + 1, dtype=torch.long, device=edge_index.device)
-    crow[1:] = torch.cumsum(torch.bincount(i, minlength=n_target), 0)
+    # i is sorted: row r starts at the first i >= r (no bincount, whose size on CUDA needs a read of max(i))
+    rows = torch.arange(n_target + 1, dtype=i.dtype, device=i.device)
+    crow = torch.searchsorted(i.contiguous(), rows)
     return _csr(crow, j, weight, n_target, n_source)
 
 
@@ -702,9 +704,9 @@ def _compiled_row_pointer(i: Tensor, j: Tensor, n_target: int, n_source: int) ->
     """
     from lagfluid import pair_kernels
 
-    kern = pair_kernels.load("lagfluid.physics._operators_numba")
-    if kern is None or i.device.type != "cpu" or i.numel() == 0:
+    if i.numel() == 0 or not pair_kernels.applies(i, j):
         return None
+    kern = pair_kernels.load("lagfluid.physics._operators_numba")
     dst, src = i.contiguous().numpy(), j.contiguous().numpy()
     pair_kernels.set_threads()
     unordered, outside = kern.check_pairs(dst, src, n_target, n_source)

@@ -103,6 +103,8 @@ class ParticleState:
             outside it has left the domain.
         check: validate on construction (simulators pass False for the states they step to: the
             rollout guard checks those, once, with a message about the run rather than the scene).
+        fluid_count: the number of FLUID rows of ``ptype`` when the caller knows it (a simulator stepping to a
+            state with its predecessor's ``ptype``); None: counted here.
     """
 
     pos: Tensor
@@ -114,13 +116,17 @@ class ParticleState:
     step: int = 0
     bounds: Tensor | None = None
     check: InitVar[bool] = True
+    fluid_count: InitVar[int | None] = None
 
-    def __post_init__(self, check: bool) -> None:
+    def __post_init__(self, check: bool, fluid_count: int | None) -> None:
         if self.pressure is None:
             self.pressure = torch.zeros(self.pos.shape[0], dtype=self.pos.dtype, device=self.pos.device)
-        # Counted once: asked for in every stage, and on CUDA each count would be a host synchronisation.
-        # (ptype is never modified in place; a state with other particles is a new state.)
-        self._n_fluid = int((self.ptype == ParticleType.FLUID).sum())
+        # Counted once, or handed over by the step that made this state: asked for in every stage, and on
+        # CUDA each count is a host synchronisation. (ptype is never modified in place; a state with other
+        # particles is a new state.)
+        if fluid_count is None:
+            fluid_count = int((self.ptype == ParticleType.FLUID).sum())
+        self._n_fluid = fluid_count
         if check:
             self.validate()
 
@@ -248,6 +254,7 @@ class ParticleState:
             step=self.step + 1,
             bounds=self.bounds,
             check=False,
+            fluid_count=nf,
         )
 
     # ------------------------------------------------------------------ checks

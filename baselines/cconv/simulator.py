@@ -93,7 +93,7 @@ class CConvSimulator:
         self.surface_offset = float(surface_offset)
         self.surface_weight = float(surface_weight)
         self.last_info: dict[str, float] = {}
-        self._timings: dict[str, float] = {}
+        self._timer = StageTimer()  # the last step's
         self._box: Tensor | None = None  # (S, 3) surface points, network axes
         self._box_normals: Tensor | None = None
         self._ranges = RangeWarner(name, {name: {"range": trained_range}})
@@ -106,7 +106,7 @@ class CConvSimulator:
     @property
     def last_timings(self) -> dict[str, float]:
         """Seconds of the last step: ``neighbors`` (the pair geometry) and ``network``."""
-        return dict(self._timings)
+        return self._timer.read()
 
     def reset(self, state: ParticleState, history: Sequence[ParticleState] = ()) -> None:
         """The scene's boundary surface, in the network's axes (``history`` is not needed).
@@ -144,7 +144,7 @@ class CConvSimulator:
         with timer("network", device):
             new_pos = pos2 + net.correction(fluid_geo, obstacle_geo, vel2, None, self._box_normals)
             new_vel = (new_pos - pos) / net.timestep
-        self._timings = dict(timer.seconds)
+        self._timer = timer
         self.last_info = {
             "fluid_pairs": float(fluid_geo.num_neighbors.sum()),
             "surface_points": float(len(self._box)),

@@ -69,7 +69,7 @@ class GNSSimulator:
         )
         self._ranges = RangeWarner(NAME, {NAME: {"range": trained}})
         self.last_info: dict[str, float] = {}
-        self._timings: dict[str, float] = {}
+        self._timer = StageTimer()  # the last step's
         self._velocities: torch.Tensor | None = None  # (Nf, H, 3) the last H velocities, oldest first
         self._warm_frames = 0
         self._next_step: int | None = None
@@ -83,7 +83,7 @@ class GNSSimulator:
     @property
     def last_timings(self) -> dict[str, float]:
         """Seconds of the last step: ``neighbors`` and ``network`` (``mps_warm_start`` in the warm start)."""
-        return dict(self._timings)
+        return self._timer.read()
 
     def reset(self, state: ParticleState, history: Sequence[ParticleState] = ()) -> None:
         """Take the velocity history from ``history`` (``H`` frames) or plan the MPS warm start (module doc).
@@ -148,6 +148,7 @@ class GNSSimulator:
             step=state.step,
             bounds=state.bounds,
             check=False,
+            fluid_count=state.n_fluid,
         )
 
     @torch.no_grad()
@@ -177,7 +178,7 @@ class GNSSimulator:
                 acc = net.acceleration.inverse(acc).to(state.dtype)
                 fluid_pos, velocity = semi_implicit_euler(state.pos[:nf], self._velocities[:, -1], acc, dt)
                 new = state.advanced_fluid(fluid_pos, velocity, dt)
-            self._timings = dict(timer.seconds)
+            self._timer = timer
             self.last_info = {"graph_edges": float(graph.edge_index.shape[1])}
         self._velocities = torch.cat([self._velocities[:, 1:], velocity.unsqueeze(1)], dim=1)
         self._next_step = new.step
@@ -197,7 +198,7 @@ class GNSSimulator:
             self._warm_frames -= 1
             velocity = (mps.pos[:nf] - state.pos[:nf]) / state.params.dt
             new = state.advanced_fluid(mps.pos[:nf], mps.vel[:nf], state.params.dt, pressure=mps.pressure)
-        self._timings = dict(timer.seconds)
+        self._timer = timer
         self.last_info = {}
         return new, velocity
 

@@ -231,28 +231,57 @@ def neighbor_list(settings: SolverSettings, cutoff: float) -> VerletNeighborList
     )
 
 
+def read_info(info: dict[str, float | Tensor]) -> dict[str, float]:
+    """``info`` as numbers, its 0-d tensors read in one transfer (on CUDA one host synchronisation)."""
+    tensors = {k: v for k, v in info.items() if isinstance(v, Tensor)}
+    if not tensors:
+        return dict(info)
+    values = torch.stack([v.detach().to(torch.float64) for v in tensors.values()]).tolist()
+    return {**info, **dict(zip(tensors, values, strict=True))}
+
+
 class StageTimer:
-    """Wall-clock seconds per named stage of the last step (synchronising CUDA for honest numbers)."""
+    """Seconds per named stage of the last step.
+
+    On the CPU wall-clock time; on CUDA the time between two events the stream records around the block:
+    no host synchronisation inside the step (a synchronisation per stage would stall the device at every
+    stage boundary). :meth:`read` waits for the last event, after the step.
+    """
 
     def __init__(self) -> None:
         self.seconds: dict[str, float] = {}
+        self._events: list[tuple[str, Any, Any]] = []  # (name, start, end) CUDA events not yet read
 
     def reset(self) -> None:
         """Forget the last step's times."""
         self.seconds = {}
+        self._events = []
 
     @contextmanager
     def __call__(self, name: str, device: torch.device) -> Iterator[None]:
         """Time the ``with`` block and add it to ``seconds[name]``."""
         if device.type == "cuda":
-            torch.cuda.synchronize(device)
-        start = time.perf_counter()
+            start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
+            start.record()
+            try:
+                yield
+            finally:
+                end.record()
+                self._events.append((name, start, end))
+            return
+        start_s = time.perf_counter()
         try:
             yield
         finally:
-            if device.type == "cuda":
-                torch.cuda.synchronize(device)
-            self.seconds[name] = self.seconds.get(name, 0.0) + time.perf_counter() - start
+            self.seconds[name] = self.seconds.get(name, 0.0) + time.perf_counter() - start_s
+
+    def read(self) -> dict[str, float]:
+        """Seconds per stage so far (reading CUDA's events: waits for the device to reach the last one)."""
+        for name, start, end in self._events:
+            end.synchronize()
+            self.seconds[name] = self.seconds.get(name, 0.0) + start.elapsed_time(end) / 1e3
+        self._events = []
+        return dict(self.seconds)
 
 
 @dataclass
@@ -321,7 +350,8 @@ class StepContext:
         constants: reference densities.
         neighbors: the Verlet list; ask it for graphs through :meth:`graph`.
         timer: per-stage timings of this step.
-        info: per-step diagnostics a stage wants reported (PPE iterations, residual, ...).
+        info: per-step diagnostics a stage wants reported (PPE iterations, residual, ...): numbers, or 0-d
+            tensors the step reads at its end, all in one transfer (:func:`read_info`).
         fields: the step's intermediates, kept only when the step was asked to record them (dataset
             generation, one-step errors); stages add theirs with :meth:`record` (or :meth:`record_label`).
     """
@@ -331,7 +361,7 @@ class StepContext:
     constants: MPSConstants
     neighbors: VerletNeighborList
     timer: StageTimer
-    info: dict[str, float] = field(default_factory=dict)
+    info: dict[str, float | Tensor] = field(default_factory=dict)
     fields: SplitStepFields | None = None
     _anchors: list[_Anchor] = field(default_factory=list)  # full-cutoff graphs, newest first (see graph)
     _within: dict[tuple[float, bool], Graph] = field(default_factory=dict)
@@ -406,8 +436,8 @@ class StepContext:
                         self._within[key] = sub.within(radius)
                 return self._within[key]
             for anchor in self._anchors:
-                if anchor.fluid_only and not fluid_targets_only:
-                    continue
+                if (anchor.fluid_only and not fluid_targets_only) or radius >= anchor.graph.radius:
+                    continue  # (the second: no displacement is small enough, so none is measured)
                 moved = anchor.moved(pos, nf)
                 if radius + 2.0 * moved < anchor.graph.radius:
                     derived = self._derive(pos, anchor, radius, moved, fluid_targets_only)
@@ -593,7 +623,7 @@ class SplitStepSimulator:
     @property
     def last_timings(self) -> dict[str, float]:
         """Seconds per stage of the last step (``neighbors`` includes the candidate-list filtering)."""
-        return dict(self.timer.seconds)
+        return self.timer.read()
 
     def attributes(self) -> dict[str, Any]:
         """Constants worth storing with a rollout."""
@@ -658,7 +688,7 @@ class SplitStepSimulator:
                 pos[:nf], vel[:nf] = integrate.correct(pos[:nf], vel[:nf], acc_p, dt)
 
         ctx.info["list_rebuilds"] = float(self.neighbors.builds - builds)
-        self.last_info = dict(ctx.info)
+        self.last_info = read_info(ctx.info)
         self.last_fields = ctx.fields
         self._carried = (pos, state.ptype, pos._version, ctx._anchors) if ctx._anchors else None
         return ParticleState(
@@ -671,6 +701,7 @@ class SplitStepSimulator:
             step=state.step + 1,
             bounds=state.bounds,
             check=False,
+            fluid_count=nf,
         )
 
     def gradient_graph(self, ctx: StepContext, pos: Tensor) -> Graph:

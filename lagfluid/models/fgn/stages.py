@@ -165,5 +165,5 @@ class LearnedPressure:
             pressure = torch.zeros(n_all, dtype=pos.dtype, device=pos.device)
             pressure[idx] = p.to(pos.dtype)
         ctx.record(number_density=n, free_surface=surface, ppe_solved=solved)
-        ctx.info.update(pressure_nodes=float(m), surface_particles=float(surface[:nf].sum()))
+        ctx.info.update(pressure_nodes=float(m), surface_particles=surface[:nf].sum())
         return pressure
