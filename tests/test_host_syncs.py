@@ -1,0 +1,122 @@
+"""The device path of a step reads the device only where it must (``benchmarks/host_syncs.py``).
+
+On CUDA every read of a device value stalls the host until the device drains its queue. These tests run
+the code a CUDA device takes on the CPU (Numba off, the torch cell list) and count those reads, so a new
+``.item()`` in a stage fails here, without a GPU.
+"""
+
+from __future__ import annotations
+
+import contextlib
+
+import pytest
+import torch
+
+from benchmarks.host_syncs import HostSyncCounter, count_steps, device_path, device_path_simulation
+from lagfluid.rollout import Guard
+
+CUDA = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
+
+# Where a steady step of FGN (no rebuild of its neighbour list) may read the device, and why it must.
+FGN_READS = {
+    "needs_rebuild": "the Verlet list's rebuild test, once per set of positions it is asked at",
+    "moved": "the displacement since an anchor graph, which sets the radius a derived graph is cut at",
+    "_derive": "whether a wall newly within reach of the fluid needs the full filter",
+    "kernel_adjacency": "a CSR matrix's range and order checks, one read per matrix",
+    "read_info": "the step's diagnostics, one read at its end",
+}
+
+
+def _function(where: str) -> str:
+    """The function name of a counter key ``"op file:line function"``."""
+    return where.rsplit(" ", 1)[1]
+
+
+@pytest.fixture(scope="module")
+def fgn_steady_steps():
+    with device_path():
+        sim, state = device_path_simulation("fgn", "dam", warmup=3)
+        _, counters, rebuilds = count_steps(sim, state, 3)
+    steady = [c for c, r in zip(counters, rebuilds, strict=True) if r == 0]
+    assert steady, "every counted step rebuilt the neighbour list: no steady step to check"
+    return steady
+
+
+def test_fgn_steady_step_reads_the_device_only_where_it_must(fgn_steady_steps):
+    for counter in fgn_steady_steps:
+        unexpected = {w: n for w, n in counter.reads.items() if _function(w) not in FGN_READS}
+        assert not unexpected, f"reads of the device outside {sorted(FGN_READS)}: {unexpected}"
+        # numpy()/cpu() would fail on a CUDA tensor: the device path must never take them
+        assert not [w for w in counter.reads if w.startswith(("numpy ", "cpu "))]
+        assert sum(counter.reads.values()) <= 8, dict(counter.reads)
+
+
+def test_fgn_steady_step_sizes_only_its_graphs(fgn_steady_steps):
+    # data-dependent sizes: the graphs at each radius and the stages' node sets (nonzero), never a mask
+    # index on a hot path
+    for counter in fgn_steady_steps:
+        assert sum(counter.sizes.values()) <= 16, dict(counter.sizes)
+        assert all(w.startswith("nonzero ") for w in counter.sizes), dict(counter.sizes)
+
+
+def test_counter_sees_a_read_and_a_mask(fgn_steady_steps):
+    # the counter itself: it must see what it claims to count
+    x = torch.arange(5.0)
+    with HostSyncCounter() as counter:
+        float(x.sum())
+        x[x > 2]
+        x.tolist()
+    assert sum(counter.reads.values()) == 2 and sum(counter.sizes.values()) == 1
+
+
+def test_guard_reads_a_passing_state_once():
+    with device_path():
+        _, state = device_path_simulation("fgn", "dam", warmup=1)
+    with HostSyncCounter() as counter:
+        Guard().check(state)
+    assert counter.total() == 1, dict(counter.reads) | dict(counter.sizes)
+
+
+@CUDA
+@pytest.mark.parametrize("model", ["fgn", "gns", "cconv"])
+def test_cuda_rollout_matches_the_cpu_device_path(model):
+    from hydra import compose, initialize_config_dir
+
+    from lagfluid.config import at_simulator_time_step, build_initial_state, build_simulator
+    from lagfluid.rollout import rollout
+    from lagfluid.run import CONF_DIR
+
+    finals = {}
+    for device in ("cpu", "cuda"):
+        with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+            cfg = compose(config_name="config", overrides=[f"model={model}", "scene=dam", f"device={device}"])
+        sim = build_simulator(cfg)
+        state = at_simulator_time_step(build_initial_state(cfg), sim, cfg)
+        finals[device], record = rollout(sim, state, 10)
+        assert all(v and min(v) >= 0 for v in record["stage_seconds"].values())
+    assert finals["cuda"].pos.device.type == "cuda"
+    torch.testing.assert_close(finals["cuda"].pos.cpu(), finals["cpu"].pos, rtol=0, atol=1e-5)
+
+
+@pytest.mark.parametrize("model", ["fgn", "mps"])
+def test_device_path_rollout_is_the_compiled_paths(model):
+    # what CUDA runs (torch ops throughout) and the CPU's compiled kernels: the same pairs, the same sums
+    from hydra import compose, initialize_config_dir
+
+    from lagfluid.config import build_initial_state, build_simulator
+    from lagfluid.rollout import rollout
+    from lagfluid.run import CONF_DIR
+
+    def final(on_device_path: bool):
+        with contextlib.ExitStack() as stack:
+            if on_device_path:
+                stack.enter_context(device_path())
+            with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+                cfg = compose(config_name="config", overrides=[f"model={model}", "scene=dam"])
+            state, record = rollout(build_simulator(cfg), build_initial_state(cfg), 40)
+        return state, sum(record["info"]["list_rebuilds"])
+
+    (compiled, builds), (device, device_builds) = final(False), final(True)
+    assert builds >= 2 and device_builds == builds  # rebuilds of the list included
+    for name in ("pos", "vel", "pressure"):
+        assert torch.equal(getattr(device, name), getattr(compiled, name)), name
