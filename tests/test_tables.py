@@ -283,6 +283,7 @@ def tiny_run(tmp_path_factory, untrained_weights, untrained_weights_of):
         only=None,
         weights=str(untrained_weights),
         threads=1,
+        device="cpu",
         results=str(root / "results"),
         runs_dir=str(root / "runs"),
         readme=True,
@@ -436,3 +437,15 @@ def test_runtime_estimate_counts_only_the_parts_asked_for():
     assert full < sum(alone.values())
     assert estimate_seconds(FULL, ["table3", "table4"]) < alone["table3"] + alone["table4"]
     assert alone["table2"] < alone["table4"]  # Table 2 is ten timed steps, no 1 s dam
+
+
+def test_device_option_is_checked_and_keeps_the_cpu_results_and_readme(capsys):
+    from benchmarks.tables.cli import parse_args
+    from benchmarks.tables.report import RESULTS
+
+    args = parse_args(["--only", "table2"])
+    assert args.device == "cpu" and args.results == str(RESULTS) and args.readme
+    for bad, says in (("bogus", "unknown device 'bogus'"), ("mps", "is not supported")):
+        with pytest.raises(SystemExit):
+            parse_args(["--device", bad])
+        assert says in capsys.readouterr().err

@@ -99,6 +99,7 @@ class Bench:
     def __init__(self, profile: Profile, args: argparse.Namespace) -> None:
         self.profile = profile
         self.threads = int(args.threads)
+        self.device = str(getattr(args, "device", "cpu"))
         self.weights = args.weights
         self.runs_dir = Path(args.runs_dir) / profile.name
         self.reference_dir = Path(args.runs_dir) / "reference"
@@ -169,6 +170,7 @@ class Bench:
             *run.sim.model_overrides(self.weights),
             *run.overrides,
             f"threads={self.threads}",
+            f"device={self.device}",
             "progress=false",
             f"evaluate.figures={hydra_value(figures)}",
             f"evaluate.one_step={hydra_value(one_step)}",
@@ -208,6 +210,7 @@ class Bench:
             f"scene={p.timing_scene}",
             f"steps={timed}",
             f"threads={self.threads}",
+            f"device={self.device}",
             "progress=false",
         ]
         print(f"[tables] {run.key}: {run.command} (after the warm-up steps)", flush=True)

@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
+from omegaconf import OmegaConf
 
 import benchmarks.tables
 from benchmarks.provenance import git_commit, markdown, provenance
@@ -37,6 +38,8 @@ from benchmarks.tables.report import (
     write_readme,
 )
 from benchmarks.tables.simulators import FGN, GROUND_TRUTH
+from lagfluid.config import run_device
+from lagfluid.errors import ConfigError
 from lagfluid.memory import keep_freed_memory
 from lagfluid.models.fgn.simulator import SHIPPED_WEIGHTS
 
@@ -58,6 +61,8 @@ def run_all(profile: Profile, args: argparse.Namespace) -> dict[str, Any]:
     machine = (
         f"{cpu_model()}, {os.cpu_count()} cores, torch {torch.__version__}, {args.threads} torch threads"
     )
+    if args.device != "cpu":
+        machine += f"; device {args.device} ({torch.cuda.get_device_name(torch.device(args.device))})"
     meta = {"machine": machine, "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())}
     meta["script_commit"] = git_commit()
     report = Report(out_dir / profile.prefix, meta)
@@ -95,7 +100,7 @@ def run_all(profile: Profile, args: argparse.Namespace) -> dict[str, Any]:
     extra = {"CPU": cpu_model(), "profile": f"{profile.name}: {profile.description}"}
     extra["runtime"] = f"{elapsed / 60:.1f} min"
     extra["FGN weights"] = str(args.weights or f"shipped ({SHIPPED_WEIGHTS.relative_to(REPO)})")
-    prov = provenance("benchmarks.tables", load, "cpu", **extra)
+    prov = provenance("benchmarks.tables", load, args.device, **extra)
     invocation = f"`{prov['command']}`, {extra['runtime']}"
     merged = merge_parts(report, bool(args.only), {r.key: r.command for r in bench.done.values()}, invocation)
     history = "\n".join(f"- {when}: {what}" for when, what in merged["history"].items())
@@ -149,18 +154,32 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     ap.add_argument(
         "--threads", type=int, default=os.cpu_count() or 1, help="torch threads (default: all cores)"
     )
-    ap.add_argument("--results", default=str(RESULTS), help="where the md/csv/png files go")
+    ap.add_argument("--device", default="cpu", help="torch device of every row (cpu, cuda, cuda:1, ...)")
+    ap.add_argument(
+        "--results",
+        default=None,
+        help=f"where the md/csv/png files go (default: {RESULTS.relative_to(REPO)}, and its subfolder "
+        "named by the device type off the CPU)",
+    )
     ap.add_argument("--runs-dir", default="runs/tables", help="rollouts and MPS references")
     ap.add_argument(
         "--readme",
         action=argparse.BooleanOptionalAction,
         default=None,
-        help="rewrite the README's results tables (default: yes for the full profile, no for --quick)",
+        help="rewrite the README's results tables (default: yes for the full profile on the CPU, else no)",
     )
     ap.add_argument("--readme-path", default=str(README), help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
+    try:
+        device_type = run_device(OmegaConf.create({"device": args.device})).type
+    except ConfigError as err:
+        ap.error(f"--device {args.device}: {err}")
+    if args.results is None:
+        args.results = str(RESULTS if device_type == "cpu" else RESULTS / device_type)
     if args.readme is None:
-        args.readme = not args.quick
+        args.readme = not args.quick and args.device == "cpu"
+    elif args.readme and args.device != "cpu":
+        ap.error(f"the README's tables are the CPU's: --device {args.device} needs --no-readme")
     return args
 
 
