@@ -351,7 +351,7 @@ class StepContext:
         neighbors: the Verlet list; ask it for graphs through :meth:`graph`.
         timer: per-stage timings of this step.
         info: per-step diagnostics a stage wants reported (PPE iterations, residual, ...): numbers, or 0-d
-            tensors the step reads at its end, all in one transfer (:func:`read_info`).
+            tensors read after the step, all in one transfer (:func:`read_info`).
         fields: the step's intermediates, kept only when the step was asked to record them (dataset
             generation, one-step errors); stages add theirs with :meth:`record` (or :meth:`record_label`).
     """
@@ -591,7 +591,7 @@ class SplitStepSimulator:
         self.constants: MPSConstants | None = None
         self.neighbors: VerletNeighborList | None = None
         self.timer = StageTimer()
-        self.last_info: dict[str, float] = {}
+        self._info: dict[str, float | Tensor] = {}  # the last step's diagnostics (see last_info)
         self.last_fields: SplitStepFields | None = None
         # The last step's graph at x**, kept for the next step when it starts from that step's output:
         # (the returned positions, their version, the step context's cached graph).
@@ -619,6 +619,16 @@ class SplitStepSimulator:
         See :func:`stage_cutoff`.
         """
         return stage_cutoff(self.settings, params, self.advection, self.collision, self.pressure)
+
+    @property
+    def last_info(self) -> dict[str, float]:
+        """Diagnostics of the last step (``info`` of its :class:`StepContext`).
+
+        Its 0-d tensors are read at the first access, after the step: on CUDA the read then waits for
+        nothing, where inside the step it would stall the queue.
+        """
+        self._info = read_info(self._info)
+        return dict(self._info)
 
     @property
     def last_timings(self) -> dict[str, float]:
@@ -688,7 +698,7 @@ class SplitStepSimulator:
                 pos[:nf], vel[:nf] = integrate.correct(pos[:nf], vel[:nf], acc_p, dt)
 
         ctx.info["list_rebuilds"] = float(self.neighbors.builds - builds)
-        self.last_info = read_info(ctx.info)
+        self._info = ctx.info
         self.last_fields = ctx.fields
         self._carried = (pos, state.ptype, pos._version, ctx._anchors) if ctx._anchors else None
         return ParticleState(
