@@ -1,7 +1,8 @@
 """How often a model's step reads the device: the host synchronisations of its CUDA path, counted on the CPU.
 
 On CUDA the host queues kernels ahead of the device; a read of a device value (``.item()``, ``bool(t)``,
-``.tolist()``, ``.cpu()``) or an op whose output size depends on the data (``nonzero``, a boolean mask
+``.tolist()``, ``.cpu()``, ``torch.tensor(..., device=)``'s copy of host data) or an op whose output size
+depends on the data (``nonzero``, a boolean mask
 index, ``bincount``, ``unique``, ...) makes the host wait for the device to drain its queue. This benchmark
 runs a model's *device path* on the CPU (the compiled Numba kernels off, the neighbour search on the torch
 cell list: what a CUDA run takes, see :mod:`lagfluid.neighbors`) and counts, per step, every such call,
@@ -44,6 +45,9 @@ SIZE_OPS = frozenset(
 )
 # Tensor methods that read the whole tensor on the host (not aten ops on the CPU, so patched here).
 READ_METHODS = ("tolist", "numpy", "cpu")
+# Factories that copy host data (not a tensor) to their ``device=``: on CUDA a blocking copy (the host waits
+# for the queue). Counted as reads ("upload") when given a device; copies by ``Tensor.to`` are not counted.
+UPLOAD_FACTORIES = ("tensor", "as_tensor")
 _OURS = ("/lagfluid/", "/baselines/")
 
 
@@ -81,6 +85,16 @@ class HostSyncCounter(TorchDispatchMode):
         return func(*args, **(kwargs or {}))
 
     def __enter__(self) -> HostSyncCounter:
+        for factory in UPLOAD_FACTORIES:
+            make = getattr(torch, factory)
+            self._patched[f"torch.{factory}"] = make
+
+            def uploaded(*a: Any, _make: Any = make, **k: Any) -> Any:
+                if k.get("device") is not None and not (a and isinstance(a[0], torch.Tensor)):
+                    self.reads[f"upload {_caller()}"] += 1
+                return _make(*a, **k)
+
+            setattr(torch, factory, uploaded)
         for method in READ_METHODS:
             original = getattr(torch.Tensor, method)
             self._patched[method] = original
@@ -95,8 +109,11 @@ class HostSyncCounter(TorchDispatchMode):
         return super().__enter__()
 
     def __exit__(self, *exc: Any) -> None:
-        for method, original in self._patched.items():
-            setattr(torch.Tensor, method, original)
+        for name, original in self._patched.items():
+            if name.startswith("torch."):
+                setattr(torch, name.removeprefix("torch."), original)
+            else:
+                setattr(torch.Tensor, name, original)
         self._patched = {}
         return super().__exit__(*exc)
 

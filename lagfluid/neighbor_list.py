@@ -100,7 +100,7 @@ class Graph:
         """
         k = self.first_counts.get(n)
         if k is None:
-            k = int(torch.searchsorted(self.edge_index[1], torch.tensor(n, device=self.edge_index.device)))
+            k = int(torch.searchsorted(self.edge_index[1], n))  # a number, not a tensor: no upload
             self.first_counts[n] = k
         return Graph(self.edge_index[:, :k], self.rel[:k], self.dist[:k], self.radius, {n: k})
 
@@ -356,7 +356,9 @@ class VerletNeighborList:
 
         ``first``: the walls within the cutoff of a fluid particle, or with ``where`` (same shape, bool)
         those of ``first`` where it is True; a hop is a static wall-to-wall pair closer than the cutoff.
-        Scatters rather than boolean indexing: no data-dependent size, so no host synchronisation on CUDA.
+        Scatters rather than boolean indexing: no data-dependent size, so no host synchronisation on CUDA
+        (CUDA's ``scatter_reduce_`` has no deterministic form: ``torch.use_deterministic_algorithms``
+        refuses it).
         """
         walls = self._static
         active = torch.zeros(pos.shape[0], dtype=torch.uint8, device=pos.device)

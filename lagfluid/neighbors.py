@@ -707,6 +707,8 @@ def _compiled_row_pointer(i: Tensor, j: Tensor, n_target: int, n_source: int) ->
     if i.numel() == 0 or not pair_kernels.applies(i, j):
         return None
     kern = pair_kernels.load("lagfluid.physics._operators_numba")
+    if kern is None:
+        return None
     dst, src = i.contiguous().numpy(), j.contiguous().numpy()
     pair_kernels.set_threads()
     unordered, outside = kern.check_pairs(dst, src, n_target, n_source)

@@ -101,9 +101,9 @@ class Guard:
         if nf == 0:
             return True
         fluid_pos, fluid_vel = state.pos[:nf], state.vel[:nf]
-        # |v| overflows float32 for finite |v| > 1e19: inf then fails the Courant test below, and check's
-        # own float64 speed decides.
-        speed = fluid_vel.norm(dim=1).max()
+        # At least float32 (a float16 norm is off by ~5e-4, more than the margin below). |v| overflows float32
+        # for finite |v| > 1e19: inf then fails the Courant test below, and check's float64 speed decides.
+        speed = fluid_vel.to(torch.promote_types(fluid_vel.dtype, torch.float32)).norm(dim=1).max()
         finite = torch.isfinite(fluid_pos).all() & torch.isfinite(fluid_vel).all()
         inside = torch.ones((), dtype=torch.bool, device=state.device)
         if state.bounds is not None:

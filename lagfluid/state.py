@@ -282,6 +282,9 @@ class ParticleState:
             raise SceneError(
                 "particles must be sorted fluid, wall, dummy; build states with ParticleState.from_arrays"
             )
+        counted = int((self.ptype == ParticleType.FLUID).sum())
+        if self.n_fluid != counted:
+            raise SceneError(f"fluid_count {self.n_fluid} does not match ptype's {counted} FLUID rows")
         if self.n_fluid == 0:
             raise SceneError("the scene has no fluid particles")
         for name in ("pos", "vel"):

@@ -58,14 +58,17 @@ def test_fgn_steady_step_sizes_only_its_graphs(fgn_steady_steps):
         assert all(w.startswith("nonzero ") for w in counter.sizes), dict(counter.sizes)
 
 
-def test_counter_sees_a_read_and_a_mask(fgn_steady_steps):
+def test_counter_sees_a_read_a_mask_and_an_upload():
     # the counter itself: it must see what it claims to count
     x = torch.arange(5.0)
     with HostSyncCounter() as counter:
         float(x.sum())
         x[x > 2]
         x.tolist()
-    assert sum(counter.reads.values()) == 2 and sum(counter.sizes.values()) == 1
+        torch.tensor([1.0, 2.0], device=x.device)
+        torch.tensor([1.0, 2.0])  # made where it is used: no copy to a device
+    assert sum(counter.reads.values()) == 3 and sum(counter.sizes.values()) == 1
+    assert torch.tensor is not None and torch.Tensor.tolist(x) == [0.0, 1.0, 2.0, 3.0, 4.0]
 
 
 def test_guard_reads_a_passing_state_once():

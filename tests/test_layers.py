@@ -64,7 +64,15 @@ LAYERS: dict[str, tuple[str, ...]] = {
     ),
     # plugin_configs: the config-resolver lagfluid/__init__ registers (stdlib and errors only)
     # progress: the rollout's and the trainer's bar or log lines (tqdm and logging only)
-    "base": ("lagfluid", "lagfluid.state", "lagfluid.errors", "lagfluid.plugin_configs", "lagfluid.progress"),
+    # device_constants: small constant tensors cached per device (torch only)
+    "base": (
+        "lagfluid",
+        "lagfluid.state",
+        "lagfluid.errors",
+        "lagfluid.plugin_configs",
+        "lagfluid.progress",
+        "lagfluid.device_constants",
+    ),
 }
 
 # What each layer may import besides its own modules.

@@ -162,6 +162,21 @@ def test_guard_names_step_particle_and_value_on_blow_up():
         rollout(mps(), state, 3, guard=Guard(max_courant=0.5))
 
 
+@pytest.mark.parametrize("dtype", [torch.float16, torch.float32, torch.float64])
+def test_guard_passes_and_stops_a_state_just_at_the_courant_limit_in_any_dtype(dtype):
+    # the guard's one-read fast path must never pass what its named checks stop (a float16 norm is off by
+    # ~5e-4: computed in the state's dtype it passed a state the check stopped)
+    state = fluid_block(2, 2, 2, vel=(0.0, 0.0, 0.0))
+    vel = state.vel.to(dtype)
+    vel[3] = torch.tensor([0.2233, 1.6885, 2.9395], dtype=dtype)
+    state = ParticleState(state.pos.to(dtype), vel, state.ptype, params=state.params, check=False)
+    speed = float(vel[3].double().norm())
+    limit = speed * state.params.dt / state.params.l0
+    Guard(max_courant=limit * (1 + 1e-9)).check(state)  # just under: passes
+    with pytest.raises(RolloutError, match="Courant number"):
+        Guard(max_courant=limit * (1 - 1e-9)).check(state)
+
+
 class _GoesBadAtStep:
     """A simulator whose fluid velocity becomes NaN from step ``bad`` on (it counts the steps it took)."""
 

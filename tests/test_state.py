@@ -70,3 +70,14 @@ def test_params_defaults_are_the_authors():
 
 def test_particle_type_codes_match_the_authors_files():
     assert (ParticleType.FLUID, ParticleType.WALL, ParticleType.DUMMY) == (1, 2, 3)
+
+
+def test_a_fluid_count_that_does_not_match_ptype_is_refused():
+    state = ParticleState.from_arrays(
+        torch.tensor([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [2.0, 0.0, 0.0]]),
+        torch.zeros(3, 3),
+        torch.tensor([1, 1, 2]),
+    )
+    assert ParticleState(state.pos, state.vel, state.ptype, fluid_count=2).n_fluid == 2
+    with pytest.raises(SceneError, match="fluid_count 3 does not match ptype's 2 FLUID rows"):
+        ParticleState(state.pos, state.vel, state.ptype, fluid_count=3)

@@ -39,6 +39,7 @@ import torch
 from torch import Tensor, nn
 
 from lagfluid import pair_kernels
+from lagfluid.device_constants import device_constant
 from lagfluid.errors import ConfigError
 from lagfluid.neighbors import edge_vectors, radius_graph
 
@@ -121,7 +122,7 @@ def filter_coordinates(rel: Tensor, radius: float, kernel_size: tuple[int, int, 
     unit = rel / radius  # in the unit ball
     fn = MAPPINGS[mapping]
     cube = fn(unit) if fn is not None else unit
-    size = torch.tensor(kernel_size[::-1], dtype=rel.dtype, device=rel.device)
+    size = device_constant(kernel_size[::-1], rel.dtype, rel.device)
     return (0.5 * cube + 0.5) * (size - 1)
 
 
@@ -256,13 +257,13 @@ def conv_geometry(
     # Trilinear weights with Open3D's clamping; the lower corner stops at k - 2 so the 8 cells of a pair are
     # distinct (the same weights: at x = k - 1 the upper corner takes all of it). Built from (E, 2) factors,
     # not (E, 8, 3) arrays: at 400k pairs those cost more in allocation than in arithmetic.
-    size = torch.tensor(kernel_size[::-1], device=coord.device)  # (k_x, k_y, k_z), as coord
+    size = device_constant(kernel_size[::-1], torch.long, coord.device)  # (k_x, k_y, k_z), as coord
     lower = torch.minimum(coord.floor().long().clamp_min(0), size - 2)
     frac = (coord - lower).clamp(0, 1)
     lx, ly, lz = lower.unbind(1)
     base = (lz * ky + ly) * kx + lx  # the lower corner's cell in the kernel array (k_z, k_y, k_x)
-    offsets = torch.tensor(
-        [(c * ky + b) * kx + a for c in (0, 1) for b in (0, 1) for a in (0, 1)], device=coord.device
+    offsets = device_constant(
+        [(c * ky + b) * kx + a for c in (0, 1) for b in (0, 1) for a in (0, 1)], torch.long, coord.device
     )  # the 8 corners, x fastest (Open3D's order)
     cell = base[:, None] + offsets[None]  # (E, 8)
     fx, fy, fz = (torch.stack([1 - f, f], dim=1) for f in frac.unbind(1))  # (E, 2) each

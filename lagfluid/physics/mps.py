@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from lagfluid.device_constants import device_constant
 from lagfluid.physics import operators as ops
 from lagfluid.physics.ppe import PPESystem, assemble_ppe, ppe_source, solve_ppe
 from lagfluid.physics.stages import SolverSettings, StepContext, stage_cutoff
@@ -31,7 +32,7 @@ class ExactAdvection:
     def __call__(self, ctx: StepContext, pos: Tensor, vel: Tensor) -> Tensor:
         """Acceleration (N_fluid, 3) at ``(x^n, v^n)``."""
         nf, params = ctx.n_fluid, ctx.params
-        acc = torch.as_tensor(params.gravity, dtype=pos.dtype, device=pos.device).expand(nf, 3).clone()
+        acc = device_constant(params.gravity, pos.dtype, pos.device).expand(nf, 3).clone()
         if params.viscosity > 0:
             g = ctx.graph(pos, ctx.settings.re_laplacian, fluid_targets_only=True)
             with ctx.timer("advection", pos.device):

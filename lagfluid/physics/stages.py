@@ -261,12 +261,13 @@ class StageTimer:
     def __call__(self, name: str, device: torch.device) -> Iterator[None]:
         """Time the ``with`` block and add it to ``seconds[name]``."""
         if device.type == "cuda":
+            stream = torch.cuda.current_stream(device)  # that device's, whichever device is current
             start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
-            start.record()
+            start.record(stream)
             try:
                 yield
             finally:
-                end.record()
+                end.record(stream)
                 self._events.append((name, start, end))
             return
         start_s = time.perf_counter()

@@ -14,6 +14,7 @@ import torch
 from torch import Tensor
 
 from lagfluid import pair_kernels
+from lagfluid.device_constants import device_constant
 from lagfluid.models.fgn.inputs import advection_inputs, collision_inputs, pressure_inputs
 from lagfluid.models.fgn.networks import AdvectionNet, CollisionNet, PressureNet
 from lagfluid.physics import operators as ops
@@ -84,8 +85,8 @@ class LearnedAdvection:
             inputs = advection_inputs(
                 vel.index_select(0, nodes),
                 nodes < nf,
-                torch.tensor([params.gravity], dtype=dtype, device=pos.device),
-                torch.tensor([params.viscosity], dtype=dtype, device=pos.device),
+                device_constant(params.gravity, dtype, pos.device).unsqueeze(0),
+                device_constant([params.viscosity], dtype, pos.device),
                 edge_index,
                 g.dist,
                 ctx.radius(self.net.radius),
