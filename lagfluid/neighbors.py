@@ -711,7 +711,8 @@ def _compiled_row_pointer(i: Tensor, j: Tensor, n_target: int, n_source: int) ->
         return None
     dst, src = i.contiguous().numpy(), j.contiguous().numpy()
     pair_kernels.set_threads()
-    unordered, outside = kern.check_pairs(dst, src, n_target, n_source)
+    row_ptr = np.empty(n_target + 1, dtype=np.int64)
+    unordered, outside = kern.check_pairs(dst, src, n_target, n_source, row_ptr)
     if unordered or outside:
         return None
-    return torch.from_numpy(np.searchsorted(dst, np.arange(n_target + 1), side="left"))
+    return torch.from_numpy(row_ptr)

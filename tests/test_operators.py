@@ -698,3 +698,27 @@ def test_compiled_kernel_equals_the_torch_operations(monkeypatch, dtype):
         slow = ops.kernel(dist, re)
     assert torch.equal(fast, slow) and fast.dtype == dtype
     assert float(fast[-3:].abs().sum()) == 0.0 and bool((fast > 0).any())
+
+
+@pytest.mark.skipif(ops._operator_kernels() is None, reason="numba not installed")
+@pytest.mark.parametrize(("n", "e"), [(50, 400), (50, 0), (3, 1), (3000, 150_000)])
+def test_the_check_pass_fills_the_row_pointer_searchsorted_would(n, e):
+    import numpy as np
+
+    kern = ops._operator_kernels()
+    rng = np.random.default_rng(n + e)
+    # empty rows at both ends and in the middle (targets drawn from a part of 0..n-1), several chunks
+    dst = np.sort(rng.integers(n // 3, max(n // 3 + 1, n - n // 4), e))
+    src = rng.integers(0, n, e)
+    expected = np.searchsorted(dst, np.arange(n + 1), side="left")
+    row_ptr = np.full(n + 1, -7, dtype=np.int64)
+    assert kern.check_edges(dst, src, n, n, row_ptr) == (0, 0)
+    assert np.array_equal(row_ptr, expected)
+    key = np.unique(dst * n + src)  # sorted by target then source, each pair once
+    pairs_dst, pairs_src = key // n, key % n
+    row_ptr = np.full(n + 1, -7, dtype=np.int64)
+    assert kern.check_pairs(pairs_dst, pairs_src, n, n, row_ptr) == (0, 0)
+    assert np.array_equal(row_ptr, np.searchsorted(pairs_dst, np.arange(n + 1), side="left"))
+    if e > 1:  # what the pass reports instead
+        assert kern.check_edges(dst[::-1].copy(), src, n, n, row_ptr)[0] > 0
+        assert kern.check_edges(dst, src, n, n - 1 - n // 4, row_ptr)[1] > 0  # a target out of range

@@ -592,10 +592,11 @@ def _sorted_rows(edge_index: Tensor, num_sources: int, num_nodes: int) -> tuple[
     kern = _operator_kernels()
     dst, src = edge_index[1].contiguous().numpy(), edge_index[0].contiguous().numpy()
     pair_kernels.set_threads()
-    descents, outside = kern.check_edges(dst, src, num_sources)
-    if descents or outside or (dst.size and not 0 <= dst[0] <= dst[-1] < num_nodes):
+    row_ptr = np.empty(num_nodes + 1, dtype=np.int64)
+    descents, outside = kern.check_edges(dst, src, num_sources, num_nodes, row_ptr)
+    if descents or outside:
         return None  # unsorted, or indices out of range (the torch path reports those)
-    return dst, src, np.searchsorted(dst, np.arange(num_nodes + 1), side="left")
+    return dst, src, row_ptr
 
 
 def _compiled_min_gradient(
