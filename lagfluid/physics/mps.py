@@ -81,7 +81,7 @@ class CollisionRule:
             approach = ((vel.index_select(0, dst) - vel.index_select(0, src)) * g.rel).sum(dim=1)
             hit = (approach > 0) & (ctx.state.ptype.index_select(0, src) != ParticleType.DUMMY)
             factor = 0.5 * (1.0 + ctx.settings.restitution) * approach / g.dist.square()
-            factor = torch.where(hit, factor, torch.zeros_like(factor))  # also where dist = 0 gave inf
+            factor = torch.where(hit, factor, torch.zeros_like(factor))  # also where dist = 0 gave 0 / 0
             v_new.index_add_(0, dst, -factor.unsqueeze(1) * g.rel)
             ctx.info["collisions"] = hit.sum()
         return v_new
