@@ -1,8 +1,10 @@
 #!/usr/bin/env bash
 # FGN's CUDA path checked in one run on a GPU machine (never run yet: no GPU has been lent to this project):
 #   1. the CUDA tests (rollouts on CUDA against the CPU's; neighbour search and operators on the device);
-#   2. Table 2 at 40k fluid particles on CUDA (benchmarks.tables --device cuda; every model's step);
-#   3. a 1M-particle dam (100 x 100 x 100 l0 of fluid), FGN and MPS: median and mean ms per step
+#   2. the host synchronisations per step as torch reports them (benchmarks.host_syncs --device cuda:
+#      host_syncs_cuda.md, against the CPU's count in benchmarks/results/host_syncs.md);
+#   3. Table 2 at 40k fluid particles on CUDA (benchmarks.tables --device cuda; every model's step);
+#   4. a 1M-particle dam (100 x 100 x 100 l0 of fluid), FGN and MPS: median and mean ms per step
 #      (goal of issue 19: FGN < 100 ms per step).
 # Each part runs even when an earlier one fails (a GPU session is scarce); the exit status is 1 if any did.
 # Everything lands in ${OUT:-runs/gpu_check}: logs, the Table 2 files (tables/), each run's metrics.json.
@@ -20,6 +22,8 @@ PY
 
 python -m pytest -q -p no:cacheprovider -k cuda \
     tests/test_host_syncs.py tests/test_neighbors.py tests/test_operators.py 2>&1 | tee "$out/cuda_tests.log" || rc=1
+
+python -m benchmarks.host_syncs --device cuda --results "$out" 2>&1 | tee "$out/host_syncs.log" || rc=1
 
 python -m benchmarks.tables --only table2 --device cuda --threads "$(nproc)" \
     --results "$out/tables" --runs-dir "$out/runs" 2>&1 | tee "$out/table2.log" || rc=1

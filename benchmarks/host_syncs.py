@@ -10,7 +10,9 @@ where it comes from, and whether it is a *read* (a value brought to the host: av
 *size* (an output whose length depends on the data: inherent in a dynamic graph built with eager PyTorch).
 
 ``python -m benchmarks.host_syncs`` writes ``benchmarks/results/host_syncs.{md,csv}``; the test
-``tests/test_host_syncs.py`` holds FGN's step to the reads listed there.
+``tests/test_host_syncs.py`` holds FGN's step to the reads listed there. On a GPU, ``--device cuda`` counts
+instead what torch itself reports as synchronising (``torch.cuda.set_sync_debug_mode``, by calling line, all
+in the reads column) into ``host_syncs_cuda.{md,csv}``: the check of the CPU count.
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ import argparse
 import contextlib
 import os
 import traceback
+import warnings
 from collections import Counter
 from collections.abc import Iterator, Sequence
 from pathlib import Path
@@ -27,11 +30,13 @@ from typing import Any
 
 import torch
 from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
 from torch.utils._python_dispatch import TorchDispatchMode
 
 from benchmarks.provenance import provenance, write_results
 from lagfluid import neighbors, pair_kernels
-from lagfluid.config import at_simulator_time_step, build_initial_state, build_simulator
+from lagfluid.config import at_simulator_time_step, build_initial_state, build_simulator, run_device
+from lagfluid.errors import ConfigError
 from lagfluid.rollout import rollout
 from lagfluid.run import CONF_DIR
 
@@ -122,6 +127,38 @@ class HostSyncCounter(TorchDispatchMode):
         return sum(self.reads.values()) + sum(self.sizes.values())
 
 
+class CudaSyncCounter:
+    """On CUDA: every synchronisation torch reports (``torch.cuda.set_sync_debug_mode("warn")``), by line.
+
+    Same ``reads`` / ``sizes`` / :meth:`total` as :class:`HostSyncCounter`; torch does not say which kind a
+    synchronisation is, so all go to ``reads``.
+    """
+
+    def __init__(self) -> None:
+        self.reads: Counter[str] = Counter()
+        self.sizes: Counter[str] = Counter()
+        self._catcher: Any = None
+        self._caught: list[warnings.WarningMessage] = []
+
+    def __enter__(self) -> CudaSyncCounter:
+        self._catcher = warnings.catch_warnings(record=True)
+        self._caught = self._catcher.__enter__()
+        warnings.simplefilter("always")
+        torch.cuda.set_sync_debug_mode("warn")
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        torch.cuda.set_sync_debug_mode("default")
+        self._catcher.__exit__(*exc)
+        for w in self._caught:
+            if "synchroniz" in str(w.message):
+                self.reads[f"cuda_sync {Path(w.filename).name}:{w.lineno}"] += 1
+
+    def total(self) -> int:
+        """Every counted synchronisation."""
+        return sum(self.reads.values())
+
+
 @contextlib.contextmanager
 def device_path() -> Iterator[None]:
     """Run the CPU through the code a CUDA device takes.
@@ -146,8 +183,8 @@ def device_path() -> Iterator[None]:
         neighbors._resolve_backend = resolve  # type: ignore[assignment]
 
 
-def device_path_simulation(model: str, scene: str, warmup: int) -> tuple[Any, Any]:
-    """``model``'s simulator on ``scene`` after ``warmup`` steps (inside :func:`device_path`: on its path)."""
+def device_path_simulation(model: str, scene: str, warmup: int, device: str = "cpu") -> tuple[Any, Any]:
+    """``model``'s simulator on ``scene`` after ``warmup`` steps (on the CPU: inside :func:`device_path`)."""
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         cfg = compose(
             config_name="config",
@@ -155,6 +192,7 @@ def device_path_simulation(model: str, scene: str, warmup: int) -> tuple[Any, An
             overrides=[
                 f"model={model}",
                 f"scene={scene}",
+                f"device={device}",
                 "solver.ppe.method=torch_cg",
             ],
         )
@@ -164,11 +202,13 @@ def device_path_simulation(model: str, scene: str, warmup: int) -> tuple[Any, An
     return sim, state
 
 
-def count_steps(sim: Any, state: Any, steps: int) -> tuple[Any, list[HostSyncCounter], list[float]]:
+def count_steps(
+    sim: Any, state: Any, steps: int, counter_type: type = HostSyncCounter
+) -> tuple[Any, list[Any], list[float]]:
     """Each of ``steps`` steps' counter (the step alone, not the rollout's guard) and its list rebuilds."""
     counters, rebuilds = [], []
     for _ in range(steps):
-        counter = HostSyncCounter()
+        counter = counter_type()
         with counter:
             state = sim.step(state)
         counters.append(counter)
@@ -176,11 +216,21 @@ def count_steps(sim: Any, state: Any, steps: int) -> tuple[Any, list[HostSyncCou
     return state, counters, rebuilds
 
 
-def measure(model: str, scene: str, warmup: int, steps: int) -> tuple[dict[str, Any], list[dict[str, Any]]]:
-    """A summary row of ``model`` on ``scene`` and one row per calling line (per-step means)."""
-    with device_path():
-        sim, state = device_path_simulation(model, scene, warmup)
-        state, counters, rebuilds = count_steps(sim, state, steps)
+def measure(
+    model: str, scene: str, warmup: int, steps: int, device: str = "cpu"
+) -> tuple[dict[str, Any], list[dict[str, Any]]]:
+    """A summary row of ``model`` on ``scene`` and one row per calling line (per-step means).
+
+    ``device="cpu"``: the CUDA code path run on the CPU, counted by :class:`HostSyncCounter`; a CUDA device:
+    the run itself, counted by :class:`CudaSyncCounter`.
+    """
+    if torch.device(device).type == "cuda":
+        sim, state = device_path_simulation(model, scene, warmup, device)
+        state, counters, rebuilds = count_steps(sim, state, steps, CudaSyncCounter)
+    else:
+        with device_path():
+            sim, state = device_path_simulation(model, scene, warmup)
+            state, counters, rebuilds = count_steps(sim, state, steps)
     steady = [c for c, r in zip(counters, rebuilds, strict=True) if r == 0] or counters
     summary = {
         "model": model,
@@ -213,13 +263,21 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--scene", default="dam")
     parser.add_argument("--warmup", type=int, default=10)
     parser.add_argument("--steps", type=int, default=20)
+    parser.add_argument(
+        "--device", default="cpu", help="cpu (the CUDA path, counted here) or cuda (torch's own count)"
+    )
     parser.add_argument("--results", default=str(RESULTS))
-    parser.add_argument("--name", default="host_syncs")
+    parser.add_argument("--name", default=None, help="default: host_syncs, host_syncs_cuda on CUDA")
     args = parser.parse_args(argv)
+    try:
+        on_cuda = run_device(OmegaConf.create({"device": args.device})).type == "cuda"
+    except ConfigError as err:
+        parser.error(f"--device {args.device}: {err}")
+    args.name = args.name or ("host_syncs_cuda" if on_cuda else "host_syncs")
     load = os.getloadavg()[0]
     summaries, rows = [], []
     for model in args.models:
-        summary, model_rows = measure(model, args.scene, args.warmup, args.steps)
+        summary, model_rows = measure(model, args.scene, args.warmup, args.steps, args.device)
         summaries.append(summary)
         rows += model_rows
     lines = [
@@ -238,7 +296,13 @@ def main(argv: Sequence[str] | None = None) -> int:
             "to the host (`.item()`, `bool()`, `.tolist()`); a *size* is an op whose output length depends "
             "on the data (`nonzero`, a mask index): on CUDA each makes the host wait for the device. Steady "
             "steps: those without a rebuild of the neighbour list. The rollout's guard adds one read per "
-            "checked step.",
+            "checked step."
+            + (
+                " This run: on CUDA, every synchronisation torch reports (set_sync_debug_mode), all under "
+                "reads."
+                if on_cuda
+                else ""
+            ),
             "",
             "| model | fluid | reads / steady step | sizes / steady step | steps with a rebuild "
             "| syncs / step (mean, all) |",
@@ -248,7 +312,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             "Rows below: per calling line, its mean count per steady step.",
         ]
     )
-    prov = provenance("benchmarks.host_syncs", load, scene=args.scene)
+    prov = provenance("benchmarks.host_syncs", load, args.device, scene=args.scene)
     write_results(Path(args.results), args.name, rows, intro, prov)
     print(intro)
     print(f"wrote {Path(args.results) / args.name}.md")

@@ -122,3 +122,19 @@ def test_device_path_rollout_is_the_compiled_paths(model):
     assert builds >= 2 and device_builds == builds  # rebuilds of the list included
     for name in ("pos", "vel", "pressure"):
         assert torch.equal(getattr(device, name), getattr(compiled, name)), name
+
+
+def test_cuda_counter_counts_what_torch_reports_as_synchronising(monkeypatch):
+    # torch's sync debug mode needs CUDA; what the counter does with its warnings is checked here
+    import warnings
+
+    from benchmarks.host_syncs import CudaSyncCounter
+
+    modes = []
+    monkeypatch.setattr(torch.cuda, "set_sync_debug_mode", modes.append)
+    with CudaSyncCounter() as counter:
+        warnings.warn("called a synchronizing CUDA operation", UserWarning, stacklevel=1)
+        warnings.warn("called a synchronizing CUDA operation", UserWarning, stacklevel=1)
+        warnings.warn("something else", UserWarning, stacklevel=1)
+    assert counter.total() == 2 and modes == ["warn", "default"]
+    assert all(key.startswith("cuda_sync test_host_syncs.py:") for key in counter.reads)
