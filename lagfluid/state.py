@@ -306,10 +306,13 @@ class ParticleState:
                     f"{self.bounds[0].tolist()} .. {self.bounds[1].tolist()}"
                 )
 
+    def fluid_outside_mask(self) -> Tensor:
+        """(N_fluid,) bool: the fluid particles outside ``bounds`` (all False when no bounds are set)."""
+        fluid = self.pos[: self.n_fluid]
+        if self.bounds is None:
+            return torch.zeros(fluid.shape[0], dtype=torch.bool, device=fluid.device)
+        return ((fluid < self.bounds[0]) | (fluid > self.bounds[1])).any(dim=1)
+
     def fluid_outside_bounds(self) -> Tensor:
         """Indices (K,) of fluid particles outside ``bounds`` (empty when no bounds are set)."""
-        if self.bounds is None:
-            return torch.empty(0, dtype=torch.long, device=self.pos.device)
-        fluid = self.pos[: self.n_fluid]
-        out = ((fluid < self.bounds[0]) | (fluid > self.bounds[1])).any(dim=1)
-        return torch.nonzero(out).flatten()
+        return torch.nonzero(self.fluid_outside_mask()).flatten()
