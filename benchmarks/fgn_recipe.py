@@ -18,7 +18,7 @@ row keeps its own date, commit and command), and ``fgn_recipe.md`` is rewritten 
 Usage::
 
     python -m benchmarks.fgn_recipe --row "shipped" lagfluid/weights/fgn \\
-        --original "authors' weights" ../shared/reference/fgn_original/checkpoints --threads 2
+        --original "authors' weights" lagfluid/weights/fgn_original --threads 2
 """
 
 from __future__ import annotations

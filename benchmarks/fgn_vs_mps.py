@@ -55,7 +55,7 @@ def run_model(model: str, args: argparse.Namespace) -> tuple[dict, Path]:
         overrides.append(f"threads={args.threads}")
     if model in ("fgn", "hybrid") and args.weights:
         overrides.append(f"model.weights={args.weights}")
-    if model == "fgn_original":
+    if model == "fgn_original" and args.weights_original:
         overrides.append(f"model.weights={args.weights_original}")
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         cfg = compose(config_name="config", overrides=overrides)
@@ -69,7 +69,9 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--steps", type=int, default=500)
     ap.add_argument("--models", nargs="+", default=["mps", "fgn", "hybrid"])
     ap.add_argument("--weights", default=None, help="FGN checkpoint directory (default: shipped weights)")
-    ap.add_argument("--weights-original", default="../shared/reference/fgn_original/checkpoints")
+    ap.add_argument(
+        "--weights-original", default=None, help="the authors' arrays (default: the copy shipped in the package)"
+    )
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--threads", type=int, default=None)
     ap.add_argument("--write-every", type=int, default=10)

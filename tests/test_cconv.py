@@ -2,6 +2,7 @@
 oracle: ``pip install open3d-cpu==0.20.0``), DeepLagrangianFluids' network and weights, the boundary
 surface, invariances, batching and the ``model=cconv_original`` rollout (seconds)."""
 
+import hashlib
 import math
 from importlib import metadata
 from pathlib import Path
@@ -24,18 +25,18 @@ from baselines.cconv.conv import (
 )
 from baselines.cconv.network import CConvNet
 from baselines.cconv.oracle import open3d_layer
-from baselines.cconv.simulator import SHIPPED, Y_UP, build_original, build_simulator
+from baselines.cconv.simulator import DLF_WEIGHTS, SHIPPED, Y_UP, build_original, build_simulator
 from lagfluid.config import at_simulator_time_step, build_initial_state, run_guard
 from lagfluid.errors import ConfigError, LagfluidError, RolloutError
-from lagfluid.models.checkpoint import CheckpointError
+from lagfluid.models.checkpoint import CheckpointError, MissingWeightsError
 from lagfluid.models.simulator import check_simulator
 from lagfluid.registry import available_simulators
 from lagfluid.rollout import rollout
 from lagfluid.run import CONF_DIR
 
 SHARED = Path(__file__).resolve().parents[2] / "shared"
-DLF_WEIGHTS = SHARED / "reference" / "cconv_original" / "pretrained_model_weights.pt"
-needs_dlf_weights = pytest.mark.skipif(not DLF_WEIGHTS.is_file(), reason="../shared/reference is not present")
+# their published network as the package ships it; the copy beside the checkout, where present, is the source
+DLF_REFERENCE = SHARED / "reference" / "cconv_original" / "pretrained_model_weights.pt"
 
 
 def _open3d():
@@ -198,7 +199,6 @@ def test_network_has_the_papers_parameter_count_and_dlf_state_dict_keys():
     assert tuple(net.conv1.kernel.shape) == (4, 4, 4, 96, 64)
 
 
-@needs_dlf_weights
 def test_dlf_weights_against_open3d_layers():
     """Their network rebuilt from Open3D's layers with the same weights (their forward, written out)."""
     _open3d()
@@ -311,14 +311,27 @@ def test_the_plugin_is_found_and_composes():
     assert "cconv_original" in {ep.name for ep in metadata.entry_points(group="lagfluid.simulators")}
     assert "cconv" in {ep.name for ep in metadata.entry_points(group="lagfluid.configs")}
     assert "cconv_original" in available_simulators()
-    cfg = _compose("model=cconv_original")
-    with pytest.raises(ConfigError, match=r"model\.weights"):
+    assert build_original(_compose("model=cconv_original")).weights == str(DLF_WEIGHTS)  # shipped default
+    cfg = _compose("model=cconv_original", "model.weights=/nonexistent/pretrained_model_weights.pt")
+    with pytest.raises(MissingWeightsError, match=r"no DeepLagrangianFluids checkpoint at /nonexistent/"):
         build_original(cfg)
 
 
-@needs_dlf_weights
+def test_the_shipped_dlf_weights_are_their_published_file_with_licence_and_card():
+    folder = DLF_WEIGHTS.parent
+    assert "Community Data License Agreement – Permissive – Version 1.0" in (
+        folder / "LICENSE-CDLA-Permissive-1.0"
+    ).read_text(encoding="utf-8")
+    card = (folder / "MODEL_CARD.md").read_text()
+    assert hashlib.sha256(DLF_WEIGHTS.read_bytes()).hexdigest() in card
+    assert "Ummenhofer" in card and "isl-org/DeepLagrangianFluids" in card  # the credit the licence keeps
+    if not DLF_REFERENCE.is_file():
+        pytest.skip("../shared/reference is not present (the shipped file's source)")
+    assert DLF_WEIGHTS.read_bytes() == DLF_REFERENCE.read_bytes()
+
+
 def test_cconv_original_rolls_out_the_small_dam_finite_and_inside_the_tank():
-    cfg = _compose("model=cconv_original", f"model.weights={DLF_WEIGHTS}", "scene=dam_small")
+    cfg = _compose("model=cconv_original", "scene=dam_small")
     sim = check_simulator(build_original(cfg), "cconv_original")
     assert sim.dt == 0.02 and sim.history_length == 0 and sim.parameters == 692_902 and sim.max_courant == 5.0
     state = at_simulator_time_step(build_initial_state(cfg), sim, cfg)

@@ -131,7 +131,7 @@ def trajectory_file(tmp_path_factory):
 def test_every_model_and_scene_composes_and_instantiates(model, scene, request):
     from lagfluid.config import build_initial_state, build_simulator
 
-    # only the file scene and the authors' weights need ../shared; the other combinations run without it
+    # the file scene reads the authors' grid the repository ships; published weights are the models' defaults
     extra = [f"scene.path={request.getfixturevalue('authors_dam_grid')}"] if scene == "file" else []
     if scene == "trajectory":
         extra.append(f"scene.path={request.getfixturevalue('trajectory_file')}")
@@ -141,12 +141,6 @@ def test_every_model_and_scene_composes_and_instantiates(model, scene, request):
     if model in ("fgn", "hybrid", "fgn_gcn", "fgn_sage", "fgn_mlp"):
         weights = request.getfixturevalue("untrained_weights_of")("fgn" if model == "hybrid" else model)
         extra.append(f"model.weights={weights}")
-    if model == "fgn_original":
-        grid = request.getfixturevalue("authors_dam_grid")
-        extra.append(f"model.weights={grid.parents[1] / 'checkpoints'}")
-    if model == "cconv_original":
-        weights = request.getfixturevalue("authors_dam_grid").parents[2] / "cconv_original"
-        extra.append(f"model.weights={weights / 'pretrained_model_weights.pt'}")
     if model not in available_simulators():  # a model that trains but does not roll out yet (cconv)
         assert model in trainable_models()
         pytest.skip(f"model={model} has no simulator registered yet (only its trainable)")

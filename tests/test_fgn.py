@@ -2,6 +2,7 @@
 
 import csv
 import functools
+import hashlib
 import json
 import os
 import signal
@@ -25,6 +26,7 @@ from lagfluid.models.checkpoint import CheckpointError, network_payload, read_ch
 from lagfluid.models.fgn import networks as fgn_mod
 from lagfluid.models.fgn.networks import build_network, load_network
 from lagfluid.models.fgn.original import load_original_network
+from lagfluid.models.fgn.simulator import AUTHORS_WEIGHTS
 from lagfluid.models.fgn.stages import compact_nodes
 from lagfluid.models.fgn.trainables import build_trainables
 from lagfluid.run import CONF_DIR
@@ -37,7 +39,8 @@ REPO = Path(__file__).resolve().parents[1]
 SHARED = Path(__file__).resolve().parents[2] / "shared"
 
 L0 = 0.05
-AUTHORS_WEIGHTS = SHARED / "reference" / "fgn_original" / "checkpoints"
+# the authors' networks as the package ships them; the copy beside the checkout, where present, is the source
+AUTHORS_REFERENCE = SHARED / "reference" / "fgn_original" / "checkpoints"
 
 
 def _compose(*overrides):
@@ -299,9 +302,26 @@ def test_induced_subgraph_compiled_and_torch_paths_agree(monkeypatch):
 # ------------------------------------------------------------------------------------ the authors' weights
 @pytest.fixture
 def authors_weights():
-    if not (AUTHORS_WEIGHTS / "adv_net.npz").is_file():
-        pytest.skip("../shared/reference is not present")
-    return AUTHORS_WEIGHTS
+    return AUTHORS_WEIGHTS  # shipped in the package: never skipped
+
+
+def test_the_shipped_authors_weights_are_their_published_files_with_licence_and_card():
+    files = ("adv_net.npz", "col_net.npz", "prs_net.npz", "adv_net.scalers.json", "prs_net.scalers.json")
+    assert all((AUTHORS_WEIGHTS / f).is_file() for f in files)
+    assert "Copyright (c) 2022 zjjlee" in (AUTHORS_WEIGHTS / "LICENSE").read_text()
+    card = (AUTHORS_WEIGHTS / "MODEL_CARD.md").read_text()
+    for f in files:  # the card's hashes are the shipped bytes'
+        assert hashlib.sha256((AUTHORS_WEIGHTS / f).read_bytes()).hexdigest() in card, f
+    if not AUTHORS_REFERENCE.is_dir():
+        pytest.skip("../shared/reference is not present (the shipped files' source)")
+    for f in files:
+        assert (AUTHORS_WEIGHTS / f).read_bytes() == (AUTHORS_REFERENCE / f).read_bytes(), f
+
+
+def test_fgn_original_builds_from_the_shipped_weights_by_default():
+    sim = build_simulator(_compose("model=fgn_original", "scene=dam_small"))
+    assert {n["source"] for n in sim.networks.values()} == {str(AUTHORS_WEIGHTS)}
+    assert sim.parameters == 17299 + 21443 - 6272 + 16193
 
 
 def test_authors_weights_load_with_their_parameter_counts(authors_weights):
@@ -357,7 +377,6 @@ def test_authors_pressure_net_matches_the_ppe_in_the_mean_on_their_dam(authors_w
     grid = f"scene.path={authors_dam_grid}"
     learned = _compose(
         "model=fgn_original",
-        f"model.weights={authors_weights}",
         "scene=file",
         grid,
         "model.stages.advection=exact",

@@ -22,6 +22,14 @@ def test_a_wheel_carries_the_configs_and_its_cli_composes_from_them(tmp_path):
         "lagfluid/conf/config.yaml",
         "lagfluid/conf/model/fgn.yaml",
         "baselines/gns/conf/model/gns.yaml",
+        # the published networks, the default weights of model=fgn_original and cconv_original, with licences
+        "lagfluid/weights/fgn_original/adv_net.npz",
+        "lagfluid/weights/fgn_original/prs_net.scalers.json",
+        "lagfluid/weights/fgn_original/LICENSE",
+        "lagfluid/weights/fgn_original/MODEL_CARD.md",
+        "baselines/cconv/weights/dlf/pretrained_model_weights.pt",
+        "baselines/cconv/weights/dlf/LICENSE-CDLA-Permissive-1.0",
+        "baselines/cconv/weights/dlf/MODEL_CARD.md",
     ):
         assert name in names, name
     target = tmp_path / "site"

@@ -16,6 +16,7 @@ from benchmarks.tables.cli import run_all
 from benchmarks.tables.config import coarsened_scene, compose_config, hydra_value, steps_in
 from benchmarks.tables.profiles import QUICK
 from benchmarks.tables.report import MARK_END, MARK_START, write_readme
+from benchmarks.tables.rows import status
 from lagfluid.errors import ConfigError
 from lagfluid.evaluate import EvaluateOptions, key_hash, reference_key, reference_settings
 from lagfluid.run import CONF_DIR
@@ -153,7 +154,7 @@ def test_the_built_in_simulators_come_from_their_row_files_in_the_papers_order()
         Simulator("fgn", "FGN", "fgn", "fgn"),
         Simulator("hybrid_pressure", "hybrid: learned pressure", "hybrid", "fgn"),
         Simulator("hybrid_advection", "hybrid: learned advection", "hybrid", "fgn"),
-        Simulator("fgn_original", "FGN, authors' weights", "fgn_original", "authors"),
+        Simulator("fgn_original", "FGN, authors' weights", "fgn_original", "none"),
     ]
     assert all(
         s.rows == (f"table2_{s.key}", f"table3_dam_{s.key}", f"table3_waterfall_{s.key}") for s in sims[:5]
@@ -168,12 +169,12 @@ def test_the_built_in_simulators_come_from_their_row_files_in_the_papers_order()
     assert paper.appears_in("table2_gns_paper") and not paper.appears_in("table3_dam_gns_paper")
     assert compose_config(["experiment=table2_gns_paper"]).model.weights == "untrained"
     # the CConv plugin's rows (baselines/cconv/conf/experiment): DeepLagrangianFluids' published network in
-    # every table, its weights passed from beside the checkout
+    # every table, the weights the package ships (the model's default: nothing passed)
     cconv = sims[7]
-    assert (cconv.key, cconv.model, cconv.weights) == ("cconv_original", "cconv_original", "dlf")
+    assert (cconv.key, cconv.model, cconv.weights) == ("cconv_original", "cconv_original", "none")
     names = ("table2_cconv_original", "table3_dam_cconv_original", "table3_waterfall_cconv_original")
     assert cconv.rows == names
-    assert cconv.model_overrides(None)[0].endswith("cconv_original/pretrained_model_weights.pt")
+    assert cconv.model_overrides(None) == [] and sims[4].model_overrides(None) == []
     assert [s.key for s in all_simulators(["fgn_original", "mps"])] == ["mps", "fgn_original"]
     with pytest.raises(ConfigError, match=r"no simulator 'nope' in the tables; available: mps, fgn, "):
         simulator("nope")
@@ -220,6 +221,29 @@ def test_a_key_with_only_a_table2_row_is_timed_and_in_no_other_table(runtime_plu
     bench.own_dt = lambda sim: None
     bench.accuracy_runs("dam"), bench.accuracy_runs("waterfall"), bench.table2_runs()
     assert asked == ["table3/dam/mps", "table3/waterfall/mps", "table2/mps", "table2/toy_timed"]
+
+
+def test_a_row_whose_weights_are_missing_is_skipped_with_its_reason_not_failed(runtime_plugin, tmp_path):
+    from lagfluid import registry
+    from lagfluid.models.checkpoint import MissingWeightsError
+
+    def no_weights(cfg):
+        raise MissingWeightsError("no toy weights at /nowhere/toy.pt")
+
+    def broken(cfg):
+        raise RuntimeError("a real failure")
+
+    for name, factory in (("toy_unshipped", no_weights), ("toy_broken", broken)):
+        runtime_plugin(name, {f"table2_{name}": {"task": "simulate", "table": {"label": name}}})
+        registry.register_simulator(name)(factory)
+    profile = replace(TINY, simulators=("toy_unshipped", "toy_broken"))
+    bench = Bench(profile, argparse.Namespace(weights=None, threads=1, runs_dir=str(tmp_path)))
+    runs = {run.sim.key: run for run in bench.table2_runs()}
+    unshipped, broken_run = runs["toy_unshipped"], runs["toy_broken"]
+    assert unshipped.skipped and not unshipped.failed and unshipped.state == "skipped"
+    assert status(unshipped) == "skipped: MissingWeightsError: no toy weights at /nowhere/toy.pt"
+    assert broken_run.failed and not broken_run.skipped and broken_run.state == "FAILED"
+    assert status(broken_run) == "failed: RuntimeError: a real failure"
 
 
 def test_table2_rows_time_fewer_steps_when_a_row_asks_and_never_a_start_up(runtime_plugin):

@@ -20,8 +20,8 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from lagfluid.errors import ConfigError, RolloutError
-from lagfluid.models.checkpoint import CheckpointError, read_checkpoint
+from lagfluid.errors import RolloutError
+from lagfluid.models.checkpoint import CheckpointError, MissingWeightsError, read_checkpoint
 from lagfluid.models.training_range import RangeWarner, checkpoint_range
 from lagfluid.physics.stages import StageTimer
 from lagfluid.state import ParticleState
@@ -179,7 +179,7 @@ def load_dlf_network(path: str | Path, **options: Any) -> CConvNet:
     """
     file = Path(path)
     if not file.is_file():
-        raise CheckpointError(f"no DeepLagrangianFluids checkpoint at {file}")
+        raise MissingWeightsError(f"no DeepLagrangianFluids checkpoint at {file}")
     try:
         state = torch.load(file, map_location="cpu", weights_only=True)
     except Exception as exc:
@@ -197,12 +197,11 @@ def load_dlf_network(path: str | Path, **options: Any) -> CConvNet:
 
 
 def build_original(cfg: Any) -> CConvSimulator:
-    """``model=cconv_original``: DeepLagrangianFluids' network (``model.weights``), their axes and dt."""
-    weights = cfg.model.get("weights")
-    if weights in (None, "", "???"):
-        raise ConfigError(
-            "model=cconv_original needs model.weights=<DeepLagrangianFluids' pretrained_model_weights.pt>"
-        )
+    """``model=cconv_original``: DeepLagrangianFluids' network, their axes and dt.
+
+    ``model.weights`` null: their published ``pretrained_model_weights.pt``, shipped in :data:`DLF_WEIGHTS`.
+    """
+    weights = cfg.model.get("weights") or DLF_WEIGHTS
     dtype = getattr(torch, str(cfg.dtype))
     net = load_dlf_network(str(weights)).to(device=torch.device(str(cfg.device)), dtype=dtype)
     weight = cfg.model.get("surface_weight")
@@ -212,6 +211,8 @@ def build_original(cfg: Any) -> CConvSimulator:
 
 SHIPPED = Path(__file__).resolve().parent / "weights"
 """The shipped weights of ``model=cconv`` (``cconv.pt``) and their model card, once trained."""
+DLF_WEIGHTS = SHIPPED / "dlf" / "pretrained_model_weights.pt"
+"""DeepLagrangianFluids' published network (CDLA-Permissive-1.0, licence and card beside it)."""
 
 
 def load_cconv(
@@ -238,7 +239,7 @@ def build_simulator(cfg: Any) -> CConvSimulator:
     folder = Path(str(cfg.model.weights)) if cfg.model.get("weights") else SHIPPED
     path = folder / "cconv.pt"
     if not path.is_file():
-        raise CheckpointError(
+        raise MissingWeightsError(
             f"no CConv weights at {path}: train them (python -m lagfluid.run task=train model=cconv "
             "train=cconv_cpu data=cpu) and pass model.weights=<that out_dir>"
         )

@@ -2,7 +2,9 @@
 
 Accuracy rows run ``task=evaluate`` (:mod:`lagfluid.evaluate`: the model and the MPS reference from the same
 initial state, metrics per stored frame), so every number comes from :mod:`lagfluid.metrics`; Table 2's
-rows are timed steps in this process. A failed row is recorded, not raised.
+rows are timed steps in this process. A failed row is recorded, not raised; a row whose model's weights
+file is missing (:class:`~lagfluid.models.checkpoint.MissingWeightsError`) is recorded as *skipped* with
+the loader's reason and does not count as failed.
 
 Table 2's warm-up (:func:`timing_warmup`) is the profile's ``timing_warmup`` steps, and at least the
 simulator's ``history_length`` steps plus one: a simulator that wants ``H`` earlier states starts a scene
@@ -40,6 +42,7 @@ from benchmarks.tables.simulators import (
 from lagfluid.config import at_simulator_time_step, build_initial_state, build_simulator, run_guard
 from lagfluid.errors import ConfigError
 from lagfluid.evaluate import evaluate
+from lagfluid.models.checkpoint import MissingWeightsError
 from lagfluid.rollout import rollout
 
 log = logging.getLogger("benchmarks.tables")
@@ -56,6 +59,7 @@ class Run:
     overrides: list[str]
     metrics: dict[str, Any] | None = None
     error: str = ""
+    skipped: bool = False
     info: dict[str, Any] = field(default_factory=dict)
 
     @property
@@ -69,6 +73,24 @@ class Run:
     def ok(self) -> bool:
         """The run produced metrics (it may still have been stopped by the guard)."""
         return self.metrics is not None
+
+    @property
+    def failed(self) -> bool:
+        """The run produced no metrics and was not skipped for missing weights."""
+        return not self.ok and not self.skipped
+
+    def record_error(self, err: Exception) -> None:
+        """Keep ``err``'s first line; a missing weights file marks the row skipped instead of failed."""
+        self.error = f"{type(err).__name__}: {err}".splitlines()[0]
+        self.skipped = isinstance(err, MissingWeightsError)
+        log.warning("row %s %s: %s", self.key, "skipped" if self.skipped else "failed", self.error)
+
+    @property
+    def state(self) -> str:
+        """``ok``, ``stopped`` (by the guard), ``skipped`` (weights missing) or ``FAILED``, for the log."""
+        if self.ok:
+            return "ok" if self.complete else "stopped"
+        return "skipped" if self.skipped else "FAILED"
 
     @property
     def complete(self) -> bool:
@@ -186,11 +208,9 @@ class Bench:
             run.info["stages"] = dict(cfg.model.get("stages") or {})  # Table 4 picks the learned pressures
             run.metrics = evaluate(cfg)
         except Exception as err:  # recorded: one failed row must not lose the hour of rows around it
-            run.error = f"{type(err).__name__}: {err}".splitlines()[0]
-            log.warning("row %s failed: %s", run.key, run.error)
+            run.record_error(err)
         run.info["wall_s"] = time.perf_counter() - start
-        state = "ok" if run.complete else ("stopped" if run.ok else "FAILED")
-        print(f"[tables] {run.key}: {state} in {run.info['wall_s']:.1f} s {run.error}", flush=True)
+        print(f"[tables] {run.key}: {run.state} in {run.info['wall_s']:.1f} s {run.error}", flush=True)
         self.done[run.key] = run
         return run
 
@@ -241,11 +261,10 @@ class Bench:
                 "timed_steps": len(steps),
             }
         except Exception as err:  # recorded: one failed row must not lose the hour of rows around it
-            run.error = f"{type(err).__name__}: {err}".splitlines()[0]
-            log.warning("row %s failed: %s", run.key, run.error)
+            run.record_error(err)
         run.info["wall_s"] = time.perf_counter() - start
         m = run.metrics or {}
-        done = f"ok ({m['warmup_steps']} warm-up + {m['timed_steps']} timed steps)" if run.ok else "FAILED"
+        done = f"ok ({m['warmup_steps']} warm-up + {m['timed_steps']} timed steps)" if run.ok else run.state
         print(f"[tables] {run.key}: {done} in {run.info['wall_s']:.1f} s {run.error}", flush=True)
         self.done[run.key] = run
         return run

@@ -48,8 +48,8 @@ def run_all(profile: Profile, args: argparse.Namespace) -> dict[str, Any]:
     """Run the selected parts of ``profile`` and write every output.
 
     Returns:
-        ``files`` written, CSV ``rows`` per part, ``failed`` row keys, ``elapsed_s`` and ``readme``
-        (whether the README was rewritten).
+        ``files`` written, CSV ``rows`` per part, ``failed`` and ``skipped`` (weights missing) row keys,
+        ``elapsed_s`` and ``readme`` (whether the README was rewritten).
     """
     start = time.perf_counter()
     load = os.getloadavg()[0]
@@ -131,11 +131,14 @@ def run_all(profile: Profile, args: argparse.Namespace) -> dict[str, Any]:
         section = label + earlier_parts(merged, "readme", run)
         section += "\n".join(pieces[k] for k in order if k in pieces)
         written["readme"] = write_readme(section, Path(args.readme_path))
-    written["failed"] = [r.key for r in bench.done.values() if not r.ok]
+    written["failed"] = [r.key for r in bench.done.values() if r.failed]
+    written["skipped"] = [r.key for r in bench.done.values() if r.skipped]
     written["elapsed_s"] = elapsed
     print(
         f"[tables] done in {elapsed / 60:.1f} min; wrote {len(report.files)} files to {out_dir}", flush=True
     )
+    if written["skipped"]:
+        print(f"[tables] rows skipped (weights missing): {', '.join(written['skipped'])}", flush=True)
     if written["failed"]:
         print(f"[tables] rows that failed: {', '.join(written['failed'])}", flush=True)
     return written

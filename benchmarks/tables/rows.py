@@ -35,9 +35,9 @@ def md_table(header: Sequence[str], rows: Sequence[Sequence[Any]], align: str | 
 
 
 def status(run: Run) -> str:
-    """How a row ended, for the tables: complete, stopped (by the guard, where) or failed (why)."""
+    """How a row ended, for the tables: complete, stopped (by the guard, where), skipped or failed (why)."""
     if not run.ok:
-        return f"failed: {run.error}"
+        return f"{'skipped' if run.skipped else 'failed'}: {run.error}"
     if not run.complete:
         # the guard's message without its coordinates and advice: "step 12: fluid particle 3 left the domain"
         reason = re.split(r" at \[| \[|; | \(", str(run.metrics.get("stop_reason", "")))[0]
@@ -112,7 +112,7 @@ def table2_rows(runs: list[Run]) -> list[dict[str, Any]]:
                 "warmup_steps": m.get("warmup_steps"),
                 "timed_steps": m.get("timed_steps"),
                 "stages_ms": " ".join(f"{k}={v:.1f}" for k, v in (m.get("stages_ms") or {}).items()),
-                "status": "complete" if run.ok else f"failed: {run.error}",
+                "status": "complete" if run.ok else status(run),
                 **provenance_columns(run),
             }
         )

@@ -30,12 +30,10 @@ unused.
 from __future__ import annotations
 
 import math
-import os
 import re
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from functools import cache
-from pathlib import Path
 from typing import Any
 
 from omegaconf import OmegaConf
@@ -44,22 +42,12 @@ from benchmarks.tables.config import compose_config, experiment_names
 from lagfluid.errors import ConfigError
 from lagfluid.registry import available_simulators
 
-REPO = Path(__file__).resolve().parents[2]
-
-# The FGN authors' published networks, kept beside a checkout (never in the repository, never shipped):
-# the default of the ``weights: authors`` rows, a cross-check of our scheme against weights nobody here
-# trained. Where it is missing those rows fail and are reported as failed; the other rows run.
-AUTHORS_WEIGHTS = REPO.parent / "shared" / "reference" / "fgn_original" / "checkpoints"
-# DeepLagrangianFluids' published CConv network (CDLA-Permissive-1.0), kept there likewise: the default of
-# the ``weights: dlf`` rows (model=cconv_original).
-DLF_WEIGHTS = REPO.parent / "shared" / "reference" / "cconv_original" / "pretrained_model_weights.pt"
-PUBLISHED = {"authors": AUTHORS_WEIGHTS, "dlf": DLF_WEIGHTS}
-
+# Published weights (the FGN authors', DeepLagrangianFluids') ship in the package as their models' defaults,
+# so their rows are ``weights: none``. A row whose weights are missing (a model without shipped weights) is
+# skipped with the loader's reason (``Run.skipped``), not failed.
 WEIGHTS = {
-    "none": "the row's own config (MPS; a model that finds its own weights)",
+    "none": "the row's own config (MPS; a model that finds its own weights, shipped or published)",
     "fgn": "--weights DIR when given (FGN's three checkpoints), else the model's default (shipped weights)",
-    "authors": "the FGN authors' published networks (AUTHORS_WEIGHTS)",
-    "dlf": "DeepLagrangianFluids' published CConv network (DLF_WEIGHTS)",
 }
 
 # Table 3's cases: the row files ``table3_<case>_<key>``.
@@ -105,8 +93,6 @@ class Simulator:
 
     def model_overrides(self, weights_dir: str | None) -> list[str]:
         """The ``model.weights`` override of this simulator's rows (``weights_dir``: ``--weights``)."""
-        if self.weights in PUBLISHED:  # relative when possible: the commands in the report stay portable
-            return [f"model.weights={os.path.relpath(PUBLISHED[self.weights])}"]
         if self.weights == "fgn" and weights_dir:
             return [f"model.weights={weights_dir}"]
         return []

@@ -22,8 +22,8 @@ from lagfluid.run import CONF_DIR
 from lagfluid.state import ParticleState, ParticleType
 
 RESULTS = Path(__file__).resolve().parents[1] / "results"
-AUTHORS_DAM = Path(__file__).resolve().parents[2] / ".." / "shared" / "reference" / "fgn_original" / "grids"
-AUTHORS_DAM = AUTHORS_DAM / "dam_col_4k.npz"
+# the authors' grid, shipped beside this script with their MIT licence (authors/README.md)
+AUTHORS_DAM = Path(__file__).resolve().parent / "authors" / "dam_col_4k.npz"
 PAPER_DENSITY_ERROR, PAPER_DIVERGENCE = 0.038, 0.019  # FGN Table 1, MPS ground truth
 
 

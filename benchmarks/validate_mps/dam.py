@@ -104,7 +104,7 @@ def check_authors_dam(quick: bool, settings: SolverSettings, figdir: Path, suffi
     list[Check], RunLog | None, dict[str, Any]
 ]:  # fmt: skip
     if not AUTHORS_DAM.exists():
-        note = f"skipped: {AUTHORS_DAM} not found (../shared absent)"
+        note = f"skipped: {AUTHORS_DAM} not found"
         print(f"[5] {note}", flush=True)
         return [Check("5 authors' dam", "run", note, "file present", "INFO")], None, {}
     steps = 60 if quick else 300

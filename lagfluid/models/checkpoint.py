@@ -41,6 +41,10 @@ class CheckpointError(LagfluidError):
     """A checkpoint that is missing, unreadable, of another format or of another network."""
 
 
+class MissingWeightsError(CheckpointError):
+    """A model's weights file does not exist (nothing to read): the tables skip such a row, naming it."""
+
+
 def save_checkpoint(path: str | os.PathLike, payload: dict[str, Any]) -> None:
     """Write ``payload`` (see the module doc) atomically to ``path``."""
     path = Path(path)
@@ -76,7 +80,7 @@ def read_checkpoint(
     """
     path = Path(path)
     if not path.is_file():
-        raise CheckpointError(f"checkpoint not found: {path}")
+        raise MissingWeightsError(f"checkpoint not found: {path}")
     try:
         ckpt = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as err:  # torch raises many types for corrupt or foreign files

@@ -7,7 +7,8 @@ strictly: a missing, extra or mis-shaped array is an error naming it. Their arch
 ``conf/model/fgn_original.yaml`` (identity activations in the node networks: their ``nn.LeakyReLU(True)``
 sets ``negative_slope=1``).
 
-The directory is a config value (``model.weights``); the package ships none of their files.
+The directory is a config value (``model.weights``); the package ships their published networks in
+``lagfluid/weights/fgn_original`` (MIT, with their licence and a model card), the default.
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from lagfluid.models.checkpoint import CheckpointError
+from lagfluid.models.checkpoint import CheckpointError, MissingWeightsError
 from lagfluid.models.fgn.networks import build_network
 
 FILES = {"advection": "adv_net", "collision": "col_net", "pressure": "prs_net"}
@@ -37,7 +38,7 @@ _RENAMES = (
 def _their_arrays(kind: str, directory: Path) -> dict[str, np.ndarray]:
     path = directory / f"{FILES[kind]}.npz"
     if not path.is_file():
-        raise CheckpointError(f"authors' {kind} weights not found: {path} (model.weights={directory})")
+        raise MissingWeightsError(f"authors' {kind} weights not found: {path} (model.weights={directory})")
     try:
         with np.load(path) as data:
             return {k: data[k] for k in data.files}
@@ -53,7 +54,7 @@ def _scalers(kind: str, directory: Path) -> dict[str, dict[str, list[float]]]:
     if kind == "collision":
         return {}  # their collision net takes raw m/s and has no scaler
     if not path.is_file():
-        raise CheckpointError(f"authors' {kind} scalers not found: {path}")
+        raise MissingWeightsError(f"authors' {kind} scalers not found: {path}")
     try:
         scalers = json.loads(path.read_text())
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:

@@ -9,7 +9,8 @@ Weights: ``model.weights`` is a directory holding ``advection.pt``, ``collision.
 authors' arrays (:mod:`lagfluid.models.fgn.original`). ``null`` means the weights shipped in the package:
 per stage, ``lagfluid/weights/<model.shipped.<stage>>`` (``fgn``, see its MODEL_CARD.md; the Table 5
 ablations ``fgn_gcn``, ``fgn_sage``, ``fgn_mlp`` ship their node-focused nets and share FGN's collision net,
-which they do not change).
+which they do not change); for ``format=original``, the authors' published networks shipped in
+``lagfluid/weights/fgn_original`` (MIT, with their licence and card).
 """
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ import torch
 from omegaconf import OmegaConf
 
 from lagfluid.errors import ConfigError
-from lagfluid.models.checkpoint import CheckpointError
+from lagfluid.models.checkpoint import CheckpointError, MissingWeightsError
 from lagfluid.models.fgn.networks import KINDS, load_network, owned_stages, parameter_count
 from lagfluid.models.fgn.original import load_original_network
 from lagfluid.models.fgn.stages import LearnedAdvection, LearnedCollision, LearnedPressure
@@ -37,6 +38,8 @@ log = logging.getLogger(__name__)
 
 WEIGHTS_ROOT = Path(__file__).resolve().parents[2] / "weights"
 SHIPPED_WEIGHTS = WEIGHTS_ROOT / "fgn"
+AUTHORS_WEIGHTS = WEIGHTS_ROOT / "fgn_original"
+"""The FGN authors' published networks (``model=fgn_original``'s default; see its MODEL_CARD.md)."""
 _IDENTITY_OPTIONS = ("aggregation",)  # what makes a variant another model: never taken from a checkpoint
 CHOICES = ("learned", "exact", "none")
 _EXACT = {"advection": ExactAdvection, "collision": CollisionRule, "pressure": ExactPressure}
@@ -75,8 +78,7 @@ def load_stage_network(kind: str, model_cfg: Any) -> tuple[torch.nn.Module, dict
     fmt = model_cfg.get("format", "lagfluid")
     weights = model_cfg.get("weights")
     if fmt == "original":
-        if weights in (None, "???"):
-            raise ConfigError("model=fgn_original needs model.weights=<directory of adv_net.npz, ...>")
+        weights = AUTHORS_WEIGHTS if weights in (None, "") else weights
         net = load_original_network(kind, _plain(model_cfg[kind]), weights)
         return net, {"source": str(weights), "format": "original"}
     if fmt != "lagfluid":
@@ -94,7 +96,7 @@ def load_stage_network(kind: str, model_cfg: Any) -> tuple[torch.nn.Module, dict
             if weights is None
             else "pass the out_dir of a task=train run, or model.weights=null for the shipped ones"
         )
-        raise CheckpointError(f"{kind} network not found: {path}; {hint}")
+        raise MissingWeightsError(f"{kind} network not found: {path}; {hint}")
     net, ckpt = load_network(path, kind)
     configured = _plain(model_cfg.get(kind))
     differs = {k: (v, ckpt["options"].get(k)) for k, v in configured.items() if ckpt["options"].get(k) != v}
