@@ -79,6 +79,42 @@ PLANTS = [
         "if j != i and _squared_distance(pos, j, i) <= bound2:",
         "tests/test_neighbors.py::test_pairs_at_exactly_the_radius_are_not_neighbours",
     ),
+    # GNS and CConv by value (issue 34)
+    (
+        "GNS edge vector sign flipped",
+        "baselines/gns/graph.py",
+        "rel = (x.index_select(0, src) - x.index_select(0, dst)) / radius",
+        "rel = (x.index_select(0, dst) - x.index_select(0, src)) / radius",
+        "tests/test_gns_values.py::test_the_training_step_feeds_the_hand_graphs_node_and_edge_features",
+    ),
+    (
+        "GNS boundary-type feature zeroed",
+        "baselines/gns/graph.py",
+        "net.type_features(boundary).to(pos.dtype),",
+        "net.type_features(torch.zeros_like(boundary)).to(pos.dtype),",
+        "tests/test_gns_values.py::test_the_training_step_feeds_the_hand_graphs_node_and_edge_features",
+    ),
+    (
+        "GNS noise-corrected target using the wrong frame",
+        "baselines/gns/trainable.py",
+        "target_next = target_next + noise[:, -1]",
+        "target_next = target_next + noise[:, -2]",
+        "tests/test_gns_values.py::test_the_noisy_target_corrects_for_the_noise_of_the_last_input_frame",
+    ),
+    (
+        "GNS pushforward starting from the last frame",
+        "baselines/gns/trainable.py",
+        "end = frames.shape[1] - unroll",
+        "end = frames.shape[1]",
+        "tests/test_gns_values.py::test_the_pushforward_starts_unroll_frames_before_the_last",
+    ),
+    (
+        "CConv window exponent 3 -> 2",
+        "baselines/cconv/conv.py",
+        "return torch.clamp((1 - r_sqr) ** 3, 0, 1)",
+        "return torch.clamp((1 - r_sqr) ** 2, 0, 1)",
+        "tests/test_cconv_values.py::test_the_layer_is_the_direct_sum_over_the_neighbours",
+    ),
 ]
 
 
