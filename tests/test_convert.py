@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import shutil
 import subprocess
 import sys
 
@@ -343,7 +344,7 @@ def test_what_cannot_convert_is_named(tmp_path, lagrangebench):
 def test_broken_metadata_and_files_are_one_line(ours, lagrangebench, tmp_path, capsys):
     for key in ("l0", "splits", "steps"):  # a hand-edited lagfluid dataset
         src = tmp_path / f"no_{key}"
-        src.mkdir()
+        shutil.copytree(ours, src)
         meta = json.loads((ours / "metadata.json").read_text())
         del meta[key]
         (src / "metadata.json").write_text(json.dumps(meta))
