@@ -115,6 +115,77 @@ PLANTS = [
         "return torch.clamp((1 - r_sqr) ** 2, 0, 1)",
         "tests/test_cconv_values.py::test_the_layer_is_the_direct_sum_over_the_neighbours",
     ),
+    # datasets and python -m lagfluid.data.convert (issue 34)
+    (
+        "converted LagrangeBench bounds transposed",
+        "lagfluid/data/convert.py",
+        '"bounds": containing.T.tolist(),',
+        '"bounds": containing.tolist(),',
+        "tests/test_convert.py::test_a_converted_dataset_is_read_by_lagrangebench_conventions",
+    ),
+    (
+        "converted LagrangeBench bounds are the fluid's domain, the walls outside them",
+        "lagfluid/data/convert.py",
+        "    containing = _containing_bounds(data)\n",
+        "    containing = data.bounds if data.bounds is not None else _bounds_of(data)\n",
+        "tests/test_convert.py::test_a_converted_dataset_is_read_by_lagrangebench_conventions",
+    ),
+    (
+        "converted set's way back takes LagrangeBench's bounds for the fluid's domain",
+        "lagfluid/data/convert.py",
+        'box = meta.get("domain_bounds") or meta.get("bounds")',
+        'box = meta.get("bounds")',
+        "tests/test_convert.py::test_a_lagrangebench_dataset_back_to_ours_keeps_the_trajectories",
+    ),
+    (
+        "convert removes a user's DST.part",
+        "lagfluid/data/convert.py",
+        "if part.is_symlink() or not marker.is_file():",
+        "if part.is_symlink():",
+        "tests/test_convert.py::test_convert_removes_no_part_folder_but_its_own",
+    ),
+    (
+        "convert leaves its marker in DST",
+        "lagfluid/data/convert.py",
+        "        (part / PART_MARKER).unlink()",
+        "        pass  # planted",
+        "tests/test_convert.py::test_convert_removes_no_part_folder_but_its_own",
+    ),
+    (
+        "a failed conversion leaves its DST.part",
+        "lagfluid/data/convert.py",
+        "shutil.rmtree(part, ignore_errors=True)  # made by this run",
+        "pass  # made by this run",
+        "tests/test_convert.py::test_what_cannot_convert_is_named",
+    ),
+    (
+        "no warning for trajectories shorter than LagrangeBench's windows",
+        "lagfluid/data/convert.py",
+        "short = {s: n for s, n in frames.items() if n < need[s]}",
+        "short = {}",
+        "tests/test_convert.py::test_lagrangebench_limits_are_warned_at_convert_time",
+    ),
+    (
+        "no warning for particles outside LagrangeBench's cells",
+        "lagfluid/data/convert.py",
+        "    if axes:",
+        "    if False:",
+        "tests/test_convert.py::test_lagrangebench_limits_are_warned_at_convert_time",
+    ),
+    (
+        "a truncated LagrangeBench train.h5 gives a traceback",
+        "lagfluid/data/convert.py",
+        "except OSError as err:  # h5py",
+        "except KeyError as err:  # h5py",
+        "tests/test_convert.py::test_broken_metadata_and_files_are_one_line",
+    ),
+    (
+        "metadata.json without l0 or splits gives a KeyError",
+        "lagfluid/data/layout.py",
+        "require_keys(meta, path, METADATA_KEYS)",
+        "None",
+        "tests/test_data.py::test_metadata_without_a_key_it_needs_is_named",
+    ),
 ]
 
 

@@ -377,6 +377,25 @@ def test_split_counts():
         split_counts(2, {"train": 0.1, "valid": 0.5, "test": 0.4})
 
 
+def test_metadata_without_a_key_it_needs_is_named(dataset, tmp_path):
+    from lagfluid.models.training_range import training_range
+
+    out = _copy(dataset, tmp_path)
+    path, whole = out / "metadata.json", json.loads((out / "metadata.json").read_text())
+    # a user's or hand-edited metadata.json: the file and the key in one line, not a KeyError from deep inside
+    path.write_text(json.dumps({k: v for k, v in whole.items() if k != "l0"}))
+    with pytest.raises(TrajectoryFileError, match=r"metadata\.json lacks the key 'l0'$"):
+        training_range([out], {})  # what task=train reads first
+    path.write_text(json.dumps({k: v for k, v in whole.items() if k != "splits"}))
+    with pytest.raises(TrajectoryFileError, match=r"metadata\.json lacks the key 'splits'$"):
+        TrajectoryWindows(out, "train", history=2)
+    path.write_text(json.dumps({**whole, "splits": {"train": whole["splits"]["train"]}}))
+    with pytest.raises(TrajectoryFileError, match=r"metadata\.json lacks the key 'splits\.valid'"):
+        AdvectionSamples(out, "valid")
+    path.write_text(json.dumps(whole))
+    assert len(AdvectionSamples(out, "valid")) > 0
+
+
 def test_bad_inputs_are_clear_errors(dataset, tmp_path):
     out = _copy(dataset, tmp_path)
     with pytest.raises(TrajectoryFileError, match="dataset directory not found"):

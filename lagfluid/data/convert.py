@@ -9,7 +9,9 @@ The source's format is recognised from its folder:
   (LagrangeBench's: 0 fluid, 1 solid wall), and ``DST/metadata.json`` with their keys (``dim``, ``dx``,
   ``dt``, ``write_every``, ``sequence_length_*``, ``num_trajs_*``, ``num_particles_max``, ``bounds``,
   ``periodic_boundary_conditions``, ``default_connectivity_radius``, ``vel_/acc_mean/std`` in their units,
-  ...), so LagrangeBench trains on our data.
+  ...), so LagrangeBench trains on our data. Its ``bounds`` hold every particle, walls too (its cell list
+  covers them); ``domain_bounds`` keeps the fluid's domain for the way back. A trajectory shorter than
+  LagrangeBench's default windows, or particles its default neighbour search would misplace, get a warning.
 * **LagrangeBench** (``metadata.json`` and ``train.h5``) and **DeepMind** ``learning_to_simulate``
   (``metadata.json`` and ``train.tfrecord``, read by the ``tfrecord`` package, no TensorFlow), written as a
   lagfluid **trajectory dataset** (default for these sources): ``scenes/scene_*.h5`` with the trajectory
@@ -17,6 +19,9 @@ The source's format is recognised from its folder:
   forward one; pressure 0; the static boundary stored once) and ``metadata.json`` with ``samples: false``.
   GNS trains on it (:class:`~lagfluid.data.datasets.TrajectoryWindows`); the stage samples FGN learns from
   come from an MPS run only, so the other datasets refuse it by name.
+
+``DST`` is written as ``DST.part`` (marked as ours by a ``.lagfluid-convert`` file written first), then
+renamed: an existing ``DST.part`` without that mark is a user's and is refused, never removed.
 
 Only 3D data converts (lagfluid's models are 3D; a 2D set is refused naming its ``dim``), only walled
 domains (a periodic one is refused: wrapped positions would read as jumps) and only a static boundary (a
@@ -32,6 +37,7 @@ import json
 import logging
 import os
 import shutil
+import socket
 import sys
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -42,7 +48,14 @@ import h5py
 import numpy as np
 from scipy.spatial import cKDTree
 
-from lagfluid.data.layout import DATASET_FORMAT, METADATA_FILE, SPLITS, scene_path
+from lagfluid.data.layout import (
+    DATASET_FORMAT,
+    METADATA_FILE,
+    SPLITS,
+    load_metadata,
+    require_keys,
+    scene_path,
+)
 from lagfluid.data.store import TrajectoryWriter, read_trajectory
 from lagfluid.errors import LagfluidError
 from lagfluid.state import ParticleType
@@ -52,6 +65,10 @@ log = logging.getLogger(__name__)
 LB_FLUID, LB_WALL = 0, 1
 DEEPMIND_KINEMATIC = 3
 FORMATS = ("lagfluid", "lagrangebench", "deepmind")
+PART_MARKER = ".lagfluid-convert"  # written first into DST.part: only a folder holding it is ours to remove
+# LagrangeBench's defaults (lagrangebench/defaults.py): model.input_seq_length, the last of
+# train.pushforward.unrolls, eval.n_rollout_steps; its H5Dataset asserts a trajectory holds its windows
+LB_INPUT_SEQ_LENGTH, LB_PUSHFORWARD_UNROLLS, LB_ROLLOUT_STEPS = 6, 3, 20
 
 
 class ConversionError(LagfluidError):
@@ -132,6 +149,14 @@ def _check_3d(dim: int, src: Path) -> None:
         )
 
 
+def _first(splits: dict[str, list[Trajectory]], src: Path) -> Trajectory:
+    """The first trajectory of the first split that has one."""
+    for trajs in splits.values():
+        if trajs:
+            return trajs[0]
+    raise ConversionError(f"{src} holds no trajectory in {', '.join(SPLITS)}")
+
+
 def _static_boundary(traj: Trajectory, where: str) -> np.ndarray:
     """The boundary rows of frame 0 (M, 3), checked to stay put in every frame."""
     boundary = traj.position[:, ~traj.fluid]
@@ -143,7 +168,8 @@ def _static_boundary(traj: Trajectory, where: str) -> np.ndarray:
 # ------------------------------------------------------------------------------------------- readers
 def read_lagfluid(src: Path, dummies: bool = False) -> Dataset:
     """A lagfluid dataset's trajectories: fluid frames, then its walls (and dummies if asked), per frame."""
-    meta = json.loads((src / METADATA_FILE).read_text())
+    meta = load_metadata(src)  # names a missing l0, splits, ... in one line
+    require_keys(meta, src / METADATA_FILE, ("steps", "sample_every"))
     splits: dict[str, list[Trajectory]] = {s: [] for s in SPLITS}
     for split in SPLITS:
         for name in meta["splits"].get(split, []):
@@ -188,6 +214,7 @@ def _one(meta: dict[str, Any], key: str) -> Any:
 def read_lagrangebench(src: Path) -> Dataset:
     """A LagrangeBench dataset (their HDF5 layout and metadata keys)."""
     meta = json.loads((src / METADATA_FILE).read_text())
+    require_keys(meta, src / METADATA_FILE, ("dt", "default_connectivity_radius"))
     _check_3d(int(meta.get("dim", 3)), src)
     periodic = [bool(p) for p in meta.get("periodic_boundary_conditions", [])]
     if any(periodic):
@@ -195,24 +222,12 @@ def read_lagrangebench(src: Path) -> Dataset:
             f"{src} is periodic along {periodic} (periodic_boundary_conditions): lagfluid's domains are "
             "walled; its wrapped positions would read as jumps of a box length"
         )
-    splits: dict[str, list[Trajectory]] = {s: [] for s in SPLITS}
-    for split in SPLITS:
-        path = src / f"{split}.h5"
-        if not path.is_file():
-            continue
-        with h5py.File(path, "r") as f:
-            for key in sorted(f):
-                ptype = f[key]["particle_type"][()]
-                unknown = sorted(set(np.unique(ptype).tolist()) - {LB_FLUID, LB_WALL})
-                if unknown:
-                    raise ConversionError(
-                        f"{path}:{key} has particle types {unknown} (LagrangeBench: 2 moving wall, 3 rigid "
-                        "body); lagfluid converts fluid (0) and static walls (1) only"
-                    )
-                splits[split].append(Trajectory(f[key]["position"][()].astype(np.float32), ptype == LB_FLUID))
+    splits = {split: _read_lagrangebench_split(src / f"{split}.h5") for split in SPLITS}
     write_every = int(meta.get("write_every", 1))
-    bounds = np.asarray(meta["bounds"], dtype=np.float64).T if "bounds" in meta else None
-    first = next(t for trajs in splits.values() for t in trajs)
+    # a set written by write_lagrangebench keeps its fluid's domain apart from the bounds round every particle
+    box = meta.get("domain_bounds") or meta.get("bounds")
+    bounds = np.asarray(box, dtype=np.float64).T if box else None
+    first = _first(splits, src)
     return Dataset(
         splits,
         frame_dt=float(meta["dt"]) * write_every,
@@ -225,6 +240,35 @@ def read_lagrangebench(src: Path) -> Dataset:
     )
 
 
+def _read_lagrangebench_split(path: Path) -> list[Trajectory]:
+    """The trajectories of one LagrangeBench split file (none when it is absent).
+
+    Raises:
+        ConversionError: the file is no readable HDF5 (corrupt, truncated), a group lacks ``position`` or
+            ``particle_type``, or holds a particle type lagfluid does not convert.
+    """
+    if not path.is_file():
+        return []
+    trajs = []
+    try:
+        with h5py.File(path, "r") as f:
+            for key in sorted(f):
+                missing = [name for name in ("particle_type", "position") if name not in f[key]]
+                if missing:
+                    raise ConversionError(f"{path}:{key} lacks {missing} (LagrangeBench's trajectory arrays)")
+                ptype = f[key]["particle_type"][()]
+                unknown = sorted(set(np.unique(ptype).tolist()) - {LB_FLUID, LB_WALL})
+                if unknown:
+                    raise ConversionError(
+                        f"{path}:{key} has particle types {unknown} (LagrangeBench: 2 moving wall, 3 rigid "
+                        "body); lagfluid converts fluid (0) and static walls (1) only"
+                    )
+                trajs.append(Trajectory(f[key]["position"][()].astype(np.float32), ptype == LB_FLUID))
+    except OSError as err:  # h5py's word for a truncated or corrupt file, at open or at a read
+        raise ConversionError(f"cannot read {path} as HDF5 (corrupt or truncated?): {err}") from err
+    return trajs
+
+
 def read_deepmind(src: Path) -> Dataset:
     """A DeepMind ``learning_to_simulate`` dataset (``{split}.tfrecord``: SequenceExamples)."""
     try:
@@ -234,6 +278,7 @@ def read_deepmind(src: Path) -> Dataset:
             "reading .tfrecord files needs the tfrecord package: pip install tfrecord"
         ) from err
     meta = json.loads((src / METADATA_FILE).read_text())
+    require_keys(meta, src / METADATA_FILE, ("dt", "default_connectivity_radius"))
     dim = int(meta.get("dim", 2))
     _check_3d(dim, src)
     splits: dict[str, list[Trajectory]] = {s: [] for s in SPLITS}
@@ -251,7 +296,7 @@ def read_deepmind(src: Path) -> Dataset:
             ]
             position = np.stack(frames).astype(np.float32)
             splits[split].append(Trajectory(position, ptype != DEEPMIND_KINEMATIC))
-    first = next(t for trajs in splits.values() for t in trajs)
+    first = _first(splits, src)
     bounds = np.asarray(meta["bounds"], dtype=np.float64).T if "bounds" in meta else None
     return Dataset(
         splits,
@@ -289,7 +334,10 @@ def write_lagrangebench(data: Dataset, dst: Path) -> Path:
                 g.create_dataset("position", data=t.position, dtype=np.float32, compression="gzip")
         os.replace(tmp, dst / f"{split}.h5")
     train, test = data.splits["train"], data.splits["test"] or data.splits["valid"]
-    bounds = data.bounds if data.bounds is not None else _bounds_of(data)
+    # LagrangeBench builds its cell list over the bounds: they hold every particle (the walls lie outside the
+    # fluid's domain), else its neighbour list misses their pairs; the domain is kept apart for the way back
+    containing = _containing_bounds(data)
+    domain = data.bounds if data.bounds is not None else containing
     meta = {
         "case": "LAGFLUID",
         "solver": "MPS" if data.source.get("format") == "lagfluid" else str(data.extra.get("solver", "")),
@@ -308,7 +356,8 @@ def write_lagrangebench(data: Dataset, dst: Path) -> Path:
         "num_trajs_test": len(data.splits["test"]),
         "num_particles_max": max(t.position.shape[1] for trajs in data.splits.values() for t in trajs),
         "periodic_boundary_conditions": [False, False, False],
-        "bounds": bounds.T.tolist(),
+        "bounds": containing.T.tolist(),
+        "domain_bounds": domain.T.tolist(),
         "default_connectivity_radius": data.radius,
         **_differences(train, data.frame_dt),
         "source": data.source,
@@ -318,8 +367,58 @@ def write_lagrangebench(data: Dataset, dst: Path) -> Path:
 
 
 def _bounds_of(data: Dataset) -> np.ndarray:
-    every = np.concatenate([t.position.reshape(-1, 3) for trajs in data.splits.values() for t in trajs])
-    return np.stack([every.min(0), every.max(0)]).astype(np.float64)
+    """(2, 3) lowest and highest coordinates of every particle (fluid and walls) in every frame."""
+    trajs = [t.position.reshape(-1, 3) for split in data.splits.values() for t in split if t.position.size]
+    lo = np.min([p.min(0) for p in trajs], axis=0)
+    hi = np.max([p.max(0) for p in trajs], axis=0)
+    return np.stack([lo, hi]).astype(np.float64)
+
+
+def _containing_bounds(data: Dataset) -> np.ndarray:
+    """(2, 3) box holding the source's domain (when it has one) and every particle of every frame."""
+    extent = _bounds_of(data)
+    if data.bounds is None:
+        return extent
+    return np.stack([np.minimum(extent[0], data.bounds[0]), np.maximum(extent[1], data.bounds[1])])
+
+
+def lagrangebench_warnings(data: Dataset, dst: Path) -> list[str]:
+    """What would stop LagrangeBench's defaults on ``data`` written to ``dst``: a line each (none: nothing).
+
+    * Trajectories shorter than its windows: it trains on ``input_seq_length + 1 + pushforward`` frames and
+      validates on ``input_seq_length + n_rollout_steps``; its ``H5Dataset`` asserts a trajectory holds one.
+      A warning, not a refusal: those are settings there (``input_seq_length`` down to 2).
+    * Particles its default neighbour search files in a wrong cell: LagrangeBench hands jax-md's cell list the
+      box size ``hi - lo`` only, and jax-md bins a coordinate ``x`` into cell ``int(x / cell)`` of
+      ``[0, hi - lo)`` (cells of at least the connectivity radius, the index truncated toward 0); a coordinate
+      at or below ``-cell`` or at or beyond ``hi - lo`` lands in a wrong cell and its pairs are missed.
+    """
+    lines = []
+    need = {"train": LB_INPUT_SEQ_LENGTH + 1 + LB_PUSHFORWARD_UNROLLS}
+    need["valid"] = need["test"] = LB_INPUT_SEQ_LENGTH + LB_ROLLOUT_STEPS
+    frames = {s: min(t.position.shape[0] for t in trajs) for s, trajs in data.splits.items() if trajs}
+    short = {s: n for s, n in frames.items() if n < need[s]}
+    if short:
+        lines.append(
+            f"{dst}: trajectories of {', '.join(f'{n} frames ({s})' for s, n in short.items())} are shorter "
+            f"than LagrangeBench's default windows: train {need['train']} frames (input_seq_length "
+            f"{LB_INPUT_SEQ_LENGTH} + 1 target + {LB_PUSHFORWARD_UNROLLS} pushforward unrolls), valid/test "
+            f"{need['valid']} (input_seq_length + eval.n_rollout_steps {LB_ROLLOUT_STEPS}); lower those "
+            "there or store more frames (data.steps)"
+        )
+    lo, hi = _containing_bounds(data)
+    extent = _bounds_of(data)
+    box = hi - lo
+    cell = box / np.maximum(np.floor(box / data.radius), 1.0)
+    axes = ["xyz"[a] for a in range(3) if extent[0, a] <= -cell[a] or extent[1, a] >= box[a]]
+    if axes:
+        lines.append(
+            f"{dst}: particles lie outside [0, hi - lo) along {', '.join(axes)} (coordinates "
+            f"{extent[0].round(6).tolist()} to {extent[1].round(6).tolist()}), the region LagrangeBench's "
+            "default neighbour search (jax-md's cell list) bins, and it would miss their pairs: train there "
+            "with neighbors.backend=matscipy"
+        )
+    return lines
 
 
 def write_lagfluid(data: Dataset, dst: Path) -> Path:
@@ -434,10 +533,62 @@ def convert(src: Path, dst: Path, to: str | None = None, dummies: bool = False) 
         raise ConversionError(f"{dst} exists: give a new folder (nothing is overwritten)")
     data = read_lagfluid(src, dummies) if fmt == "lagfluid" else READERS[fmt](src)
     part = dst.with_name(dst.name + ".part")
-    shutil.rmtree(part, ignore_errors=True)
-    WRITERS[to](data, part)
-    os.replace(part, dst)  # a finished conversion appears whole
+    _claim_part(part)
+    try:
+        WRITERS[to](data, part)
+        (part / PART_MARKER).unlink()
+        os.replace(part, dst)  # a finished conversion appears whole
+    except BaseException:
+        shutil.rmtree(part, ignore_errors=True)  # made by this run (_claim_part): nothing of a user's
+        raise
+    if to == "lagrangebench":
+        for line in lagrangebench_warnings(data, dst):
+            log.warning(line)
     return dst
+
+
+def _claim_part(part: Path) -> None:
+    """Create ``part`` (``DST.part``) for this run, marked as ours; an unfinished conversion's is replaced.
+
+    Raises:
+        ConversionError: ``part`` exists without our marker (a user's: nothing of it is removed), or a
+            conversion still running on this machine is writing it.
+    """
+    marker = part / PART_MARKER
+    if part.exists() or part.is_symlink():
+        if part.is_symlink() or not marker.is_file():
+            raise ConversionError(
+                f"{part} exists and was not made by lagfluid.data.convert (no {PART_MARKER} in it): move it "
+                "away or give another DST (nothing of it is removed)"
+            )
+        owner = _marker_owner(marker)
+        if owner is not None:
+            raise ConversionError(f"{part} is being written by another conversion ({owner}): wait for it")
+        log.info("removing %s: an unfinished conversion left it", part)
+        shutil.rmtree(part)
+    try:
+        part.mkdir(parents=True)
+    except FileExistsError as err:  # another conversion made it just now
+        raise ConversionError(f"{part} was just made by another process: give another DST") from err
+    marker.write_text(json.dumps({"pid": os.getpid(), "host": socket.gethostname()}))
+
+
+def _marker_owner(marker: Path) -> str | None:
+    """The live conversion that wrote ``marker`` (``"process N on HOST"``), or None if it has ended."""
+    try:
+        owner = json.loads(marker.read_text())
+        pid, host = int(owner["pid"]), str(owner["host"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return None  # a marker cut short by a crash: its run is over
+    if host != socket.gethostname():
+        return f"process {pid} on {host}"  # cannot tell from here: left alone
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return None
+    except PermissionError:
+        pass  # alive, another user's
+    return f"process {pid} on {host}"
 
 
 def main(argv: Sequence[str] | None = None) -> int:

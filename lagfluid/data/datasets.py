@@ -42,7 +42,6 @@ Example::
 
 from __future__ import annotations
 
-import json
 import os
 from pathlib import Path
 from typing import Any, Literal
@@ -55,11 +54,10 @@ from torch import Tensor
 from torch_geometric.data import Data, Dataset
 
 from lagfluid.data.layout import (
-    DATASET_FORMAT,
     GROUP,
-    METADATA_FILE,
     SPLITS,
     SceneInfo,
+    load_metadata,
     read_scene_info,
 )
 from lagfluid.data.store import TrajectoryFileError
@@ -73,33 +71,6 @@ __all__ = [
     "TrajectoryWindows",
     "load_metadata",
 ]
-
-
-def load_metadata(root: str | os.PathLike) -> dict[str, Any]:
-    """``root/metadata.json`` of a generated dataset.
-
-    Raises:
-        TrajectoryFileError: the directory or its metadata is missing, unreadable or of another format.
-    """
-    root = Path(root)
-    if not root.is_dir():
-        raise TrajectoryFileError(f"dataset directory not found: {root}")
-    path = root / METADATA_FILE
-    if not path.is_file():
-        raise TrajectoryFileError(
-            f"{path} not found: not a generated dataset, or its generation is unfinished "
-            "(rerun python -m lagfluid.run task=generate with the same data settings)"
-        )
-    try:
-        meta = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as err:
-        raise TrajectoryFileError(f"cannot read {path}: {err}") from err
-    if meta.get("format") != DATASET_FORMAT or meta.get("format_version") != 1:
-        raise TrajectoryFileError(
-            f"{path} is not lagfluid dataset metadata version 1 "
-            f"(format={meta.get('format')!r}, format_version={meta.get('format_version')!r})"
-        )
-    return meta
 
 
 class _SceneDataset(Dataset):

@@ -64,7 +64,9 @@ the **train** split only (DESIGN convention 6).
 
 from __future__ import annotations
 
+import json
 import os
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -85,6 +87,13 @@ DATASET_FORMAT = "lagfluid-dataset"
 SCENE_DIR = "scenes"
 SPLITS = ("train", "valid", "test")
 _COMPRESS = {"compression": "gzip", "compression_opts": 4, "shuffle": True}
+
+
+def require_keys(meta: Mapping[str, Any], path: Path, keys: Iterable[str]) -> None:
+    """Raise :class:`TrajectoryFileError` naming ``path`` and the first of ``keys`` that ``meta`` lacks."""
+    for key in keys:
+        if key not in meta:
+            raise TrajectoryFileError(f"{path} lacks the key '{key}'")
 
 
 def scene_path(out_dir: str | os.PathLike, index: int) -> Path:
@@ -116,6 +125,43 @@ def split_of(num_scenes: int, fractions: dict[str, float]) -> list[str]:
     """Split of every scene index: train first, then valid, then test (deterministic by index)."""
     counts = split_counts(num_scenes, fractions)
     return [s for s in SPLITS for _ in range(counts[s])]
+
+
+METADATA_KEYS = ("dt", "l0", "default_connectivity_radius", "splits", "scenes")
+"""The keys of ``metadata.json`` the datasets and the training read (:func:`load_metadata` checks them)."""
+
+
+def load_metadata(root: str | os.PathLike) -> dict[str, Any]:
+    """``root/metadata.json`` of a generated dataset.
+
+    Raises:
+        TrajectoryFileError: the directory or its metadata is missing, unreadable, of another format, or lacks
+            a key of :data:`METADATA_KEYS` or a split of ``splits`` (the message names the file and the key).
+    """
+    root = Path(root)
+    if not root.is_dir():
+        raise TrajectoryFileError(f"dataset directory not found: {root}")
+    path = root / METADATA_FILE
+    if not path.is_file():
+        raise TrajectoryFileError(
+            f"{path} not found: not a generated dataset, or its generation is unfinished "
+            "(rerun python -m lagfluid.run task=generate with the same data settings)"
+        )
+    try:
+        meta = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as err:
+        raise TrajectoryFileError(f"cannot read {path}: {err}") from err
+    if meta.get("format") != DATASET_FORMAT or meta.get("format_version") != 1:
+        raise TrajectoryFileError(
+            f"{path} is not lagfluid dataset metadata version 1 "
+            f"(format={meta.get('format')!r}, format_version={meta.get('format_version')!r})"
+        )
+    require_keys(meta, path, METADATA_KEYS)  # a hand-edited file: one line here, not a KeyError later
+    splits = meta["splits"]
+    missing = [s for s in SPLITS if s not in splits] if isinstance(splits, dict) else ["train"]
+    if missing:
+        raise TrajectoryFileError(f"{path} lacks the key 'splits.{missing[0]}' (its list of scene files)")
+    return meta
 
 
 # ------------------------------------------------------------------------------------------ scene files
