@@ -275,8 +275,7 @@ def simulate(cfg: DictConfig) -> dict[str, Any]:
         try:
             if complete:
                 checkpoint.remove()
-            for key, value in simulator.attributes().items():
-                writer.group.attrs[key] = value
+            writer.set_attributes(simulator.attributes())
             writer.close(complete=complete, stop_reason=stop_reason)
             metrics = {
                 "model": simulator.name,

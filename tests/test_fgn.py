@@ -444,7 +444,7 @@ def test_an_ablation_trains_its_two_nets_and_rolls_out_with_fgns_collision_net(t
     cfg = _compose("task=simulate", "model=fgn_sage", f"model.weights={out}", "scene=dam_small", "steps=5")
     metrics = simulate(OmegaConf.merge(cfg, {"out_dir": str(tmp_path / "roll"), "progress": False}))
     assert metrics["complete"], metrics["stop_reason"]
-    networks = json.loads(metrics["simulator"]["networks"])
+    networks = metrics["simulator"]["networks"]
     assert Path(networks["pressure"]["source"]).parent == out
     assert Path(networks["collision"]["source"]).parent == SHIPPED_WEIGHTS
 
@@ -675,7 +675,7 @@ def test_short_rollout_stays_finite_and_writes_the_contract(trained, tmp_path, m
     assert (tmp_path / "rollout.h5").is_file() and (tmp_path / "preview.png").is_file()
     saved = json.loads((tmp_path / "metrics.json").read_text())
     assert saved["model"] == model and "advection" in saved["stage_median_s"]
-    assert json.loads(saved["simulator"]["networks"])["pressure"]["step"] == 60
+    assert saved["simulator"]["networks"]["pressure"]["step"] == 60
 
 
 def test_the_neighbour_list_is_only_as_wide_as_the_stages_need(trained):
@@ -730,8 +730,37 @@ def test_shipped_weights_fit_the_fgn_config_and_roll_out_by_default(tmp_path):
     assert cfg.model.weights is None
     metrics = simulate(cfg)
     assert metrics["complete"], metrics["stop_reason"]
-    networks = json.loads(metrics["simulator"]["networks"])
+    networks = metrics["simulator"]["networks"]
     assert all(Path(networks[k]["source"]).parent == SHIPPED_WEIGHTS for k in networks)
+
+
+def _json_text_inside(value, where="metrics.json"):
+    """The places in a parsed JSON document holding a string that is itself a JSON object or list."""
+    if isinstance(value, dict):
+        return [p for k, v in value.items() for p in _json_text_inside(v, f"{where}.{k}")]
+    if isinstance(value, list):
+        return [p for i, v in enumerate(value) for p in _json_text_inside(v, f"{where}[{i}]")]
+    if isinstance(value, str) and value.strip()[:1] in ("{", "["):
+        try:
+            return [where] if isinstance(json.loads(value), (dict, list)) else []
+        except json.JSONDecodeError:
+            return []
+    return []
+
+
+def test_metrics_json_holds_the_networks_as_an_object_not_json_text(tmp_path):
+    """``simulator.networks`` was a JSON string inside metrics.json; the rollout file keeps the JSON text."""
+    from lagfluid.data.store import read_trajectory
+    from lagfluid.models.fgn.simulator import SHIPPED_WEIGHTS
+
+    simulate(_compose("task=simulate", "model=fgn", "scene=dam_small", "steps=1", f"out_dir={tmp_path}"))
+    saved = json.loads((tmp_path / "metrics.json").read_text())
+    assert _json_text_inside(saved) == []
+    networks = saved["simulator"]["networks"]
+    assert sorted(networks) == ["advection", "collision", "pressure"]
+    assert networks["pressure"]["source"] == str(SHIPPED_WEIGHTS / "pressure.pt")
+    # HDF5 attributes have no dicts: the rollout file holds the same object as JSON text
+    assert json.loads(read_trajectory(tmp_path / "rollout.h5")["attrs"]["networks"]) == networks
 
 
 def test_stage_losses_and_an_unknown_loss_is_named():

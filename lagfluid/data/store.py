@@ -144,6 +144,11 @@ class TrajectoryWriter:
         self.frames += 1
         self.file.flush()
 
+    def set_attributes(self, attrs: dict[str, Any]) -> None:
+        """Add group attributes as the constructor does (a dict, or a list of non-numbers, as JSON text)."""
+        for key, value in attrs.items():
+            self.group.attrs[key] = _attr_value(value)
+
     def append_state(self, state: Any) -> None:
         """Append the fluid rows of a :class:`~lagfluid.state.ParticleState` as one frame."""
         nf = state.n_fluid

@@ -75,7 +75,11 @@ class Simulator(Protocol):
         ...
 
     def attributes(self) -> dict[str, Any]:
-        """Scalars worth storing with a rollout (reference densities, where the weights came from, ...)."""
+        """Values worth storing with a rollout (reference densities, where the weights came from, ...).
+
+        Numbers, strings, or dicts and lists of them: ``metrics.json`` holds them as they are, the rollout
+        file's attributes hold a dict as its JSON text (HDF5 attributes have no dicts).
+        """
         ...
 
     # Optional, for a simulator that carries tensors from one step to the next beyond the state (GNS's
