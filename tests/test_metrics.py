@@ -14,10 +14,10 @@ from lagfluid.metrics import (
     chamfer_distance,
     field_metrics,
     kinetic_energy,
+    kinetic_energy_error,
     mse_horizons,
     normalized_mae,
     position_mse,
-    relative_error,
     summarize,
 )
 from lagfluid.physics.reference import exact_context, exact_ppe, mps_constants, ppe_relative_residual
@@ -74,7 +74,7 @@ def test_kinetic_energy_of_runs_at_two_spacings_uses_each_runs_particle_mass(tmp
     energy = 0.5 * 1000.0 * 0.1**3  # J: 1 kg of water at 1 m/s
     assert out["kinetic_energy_J"]["model"] == pytest.approx([energy] * 3, rel=1e-6)
     assert out["kinetic_energy_J"]["reference"] == pytest.approx([energy] * 3, rel=1e-6)
-    assert out["kinetic_energy_rel_error"] == pytest.approx([0.0] * 3, abs=1e-6)
+    assert out["kinetic_energy_error_rel_peak"] == pytest.approx([0.0] * 3, abs=1e-6)
 
 
 def test_field_metrics_without_interior_particles_are_zero():
@@ -140,15 +140,24 @@ def test_mse_horizons_at_and_mean_to_step():
 
 
 # ------------------------------------------------------------------------------------------- kinetic energy
-def test_kinetic_energy_and_its_relative_error_by_hand():
+def test_kinetic_energy_by_hand():
     vel = np.array([[1.0, 0, 0], [0, 2, 0]])
     assert kinetic_energy(vel, particle_mass=2.0) == pytest.approx(0.5 * 2 * (1 + 4))
-    assert relative_error(6.0, 5.0) == pytest.approx(0.2)
-    assert relative_error(4.0, 5.0) == pytest.approx(0.2)
-    assert relative_error(0.0, 0.0) == 0.0
-    assert relative_error(1.0, 0.0) == math.inf
     with pytest.raises(MetricInputError, match="particle_mass"):
         kinetic_energy(vel, 0.0)
+
+
+def test_kinetic_energy_error_is_relative_to_the_references_peak_not_to_each_frame():
+    # A dam at rest at t = 0: the reference's energy starts at 0 and peaks at 4 J. At frame 1 the model has
+    # 0.07 J against 0.01 J: 600 % of that frame's energy, but 0.06 / 4 = 1.5 % of the peak.
+    model = [0.0, 0.07, 1.5, 3.0, 4.4]
+    ref = [0.0, 0.01, 1.0, 4.0, 3.6]
+    assert kinetic_energy_error(model, ref) == pytest.approx([0.0, 0.015, 0.125, 0.25, 0.2], rel=1e-12)
+    assert kinetic_energy_error(ref, ref) == [0.0] * 5
+    # a reference that never moves has no scale: 0 where the model is at rest too, inf where it moves
+    assert kinetic_energy_error([0.0, 0.5], [0.0, 0.0]) == [0.0, math.inf]
+    with pytest.raises(MetricInputError, match="one length"):
+        kinetic_energy_error([1.0, 2.0], [1.0])
 
 
 # ------------------------------------------------------------------------------------------- normalised MAE
