@@ -79,6 +79,7 @@ def test_cli_evaluate_writes_every_output(cli_run):
     for key in ("density_error", "velocity_divergence_per_s", "kinetic_energy_J"):
         assert len(frames[key]["model"]) == len(frames[key]["reference"]) == STEPS + 1
     assert metrics["pressure_slice"]["particles"]["model"] > 0
+    assert metrics["pressure_slice"]["field"] == "pressure"  # MPS predicts a pressure
 
 
 def test_mps_against_itself_has_zero_error(cli_run):
@@ -300,6 +301,31 @@ def test_a_model_that_differs_from_mps_gets_the_errors_computed_by_hand(cli_run,
     assert frames["density_error"]["model"] == pytest.approx(
         [frames["density_error"]["model"][0]] * (STEPS + 1)
     )
+
+
+class _FrozenWithoutPressure(_Frozen):
+    name, predicts_pressure = "frozen_no_pressure", False
+
+
+def test_the_figures_of_a_model_without_pressure_show_speed(cli_run, tmp_path, monkeypatch):
+    from lagfluid import registry
+    from lagfluid.viz import field_values
+
+    _, ref_dir, _ = cli_run
+    monkeypatch.setitem(registry._REGISTERED, "frozen_no_pressure", _FrozenWithoutPressure)
+    seen = []
+    monkeypatch.setattr(
+        "lagfluid.evaluate.figures.field_values", lambda *args: seen.append(args[0]) or field_values(*args)
+    )
+    cfg = _compose(
+        "model.name=frozen_no_pressure",
+        f"out_dir={tmp_path}",
+        f"evaluate.reference_dir={ref_dir}",
+        "evaluate.figures=true",
+    )
+    metrics = evaluate(cfg)
+    assert metrics["pressure_slice"]["field"] == "speed" and seen == ["speed", "speed"]  # both panels
+    assert (tmp_path / "pressure_slice.png").is_file()
 
 
 def test_unknown_model_is_a_clear_error_before_any_reference_run(tmp_path):

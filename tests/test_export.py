@@ -76,3 +76,116 @@ def test_bad_exports_are_refused_before_the_run(tmp_path):
     if shutil.which("ffmpeg") is None:
         with pytest.raises(ConfigError, match=r"mp4 needs ffmpeg on the PATH"):
             simulate(_compose("steps=2", "export=mp4", f"out_dir={tmp_path / 'run'}"))
+
+
+# ------------------------------------------------------------------------------------------- pictures
+class _WithoutPressure:
+    """MPS's motion with the pressure dropped, as GNS and CConv step: a plugin-style simulator."""
+
+    name, dt, history_length, max_courant, last_fields = "no_pressure", None, 0, None, None
+    predicts_pressure = False
+    blow_up_at = None  # a step whose velocities turn NaN (the guard stops the run there)
+
+    def __init__(self, cfg):
+        from lagfluid.models.mps_simulator import build_mps
+
+        self.inner, self.last_info, self.parameters = build_mps(cfg), {}, 0
+
+    @property
+    def last_timings(self):
+        return self.inner.last_timings
+
+    def reset(self, state, history=()):
+        self.inner.reset(state)
+
+    def step(self, state, *, record=False):
+        new = self.inner.step(state)
+        nf = new.n_fluid
+        vel = new.vel[:nf].clone()
+        if self.blow_up_at is not None and new.step >= self.blow_up_at:
+            vel[0] = float("nan")
+        return state.advanced_fluid(new.pos[:nf], vel, new.params.dt)  # pressure: zeros
+
+    def attributes(self):
+        return {}
+
+
+class _BlowsUpAtStep2(_WithoutPressure):
+    name, blow_up_at = "blows_up", 2
+
+
+@pytest.fixture
+def drawn(monkeypatch):
+    """The preview figures drawn while the test runs (the figure objects, before they are saved)."""
+    import lagfluid.viz
+
+    figures, original = [], lagfluid.viz.preview_figure
+
+    def keep(*args, **kwargs):
+        figures.append(original(*args, **kwargs))
+        return figures[-1]
+
+    monkeypatch.setattr(lagfluid.viz, "preview_figure", keep)
+    return figures
+
+
+def _panels(fig):
+    """Per panel of a preview: the fluid's colour values, sorted (the boundary is the first scatter)."""
+    return [np.sort(np.asarray(ax.collections[1].get_array())) for ax in fig.axes[:-1]]
+
+
+def test_the_field_a_picture_colours_by_follows_what_the_simulator_predicts():
+    from baselines.cconv.simulator import CConvSimulator
+    from baselines.gns.simulator import GNSSimulator
+    from lagfluid.config import build_simulator
+    from lagfluid.viz import FIELDS, colour_field, field_values
+
+    assert colour_field(GNSSimulator) == colour_field(CConvSimulator) == "speed"
+    assert colour_field(build_simulator(_compose("model=mps"))) == "pressure"  # no attribute: it predicts one
+    assert (FIELDS["speed"], FIELDS["pressure"]) == ("speed (m/s)", "pressure (Pa)")
+    vel, p = np.array([[3.0, 4.0, 0.0], [0.0, 0.0, -2.0]]), np.array([7.0, 9.0])
+    np.testing.assert_array_equal(field_values("speed", vel, p), [5.0, 2.0])
+    np.testing.assert_array_equal(field_values("pressure", vel, p), [7.0, 9.0])
+
+
+@pytest.mark.parametrize(("model", "field"), [("mps", "pressure"), ("no_pressure", "speed")])
+def test_a_preview_colours_by_pressure_only_for_a_simulator_that_predicts_it(
+    model, field, tmp_path, monkeypatch, drawn
+):
+    from lagfluid import registry
+
+    monkeypatch.setitem(registry._REGISTERED, "no_pressure", _WithoutPressure)
+    simulate(_compose(f"model.name={model}", "steps=4", f"out_dir={tmp_path}"))
+    (fig,) = drawn
+    assert fig.axes[-1].get_ylabel() == {"pressure": "pressure (Pa)", "speed": "speed (m/s)"}[field]
+    assert fig._suptitle.get_text() == f"{model} on dam_small"
+    run = read_trajectory(tmp_path / "rollout.h5")
+    for k, values in zip((0, 2, 4), _panels(fig), strict=True):  # first, middle and last frame
+        speed = np.linalg.norm(run["velocity"][k], axis=1)
+        expected = run["pressure"][k] if field == "pressure" else speed
+        np.testing.assert_allclose(values, np.sort(expected), rtol=1e-6)
+    if field == "pressure":
+        assert run["pressure"][4].max() > 0  # MPS's pressure is there to be drawn
+
+
+def test_a_run_stopped_by_the_guard_says_so_on_its_preview(tmp_path, monkeypatch, drawn):
+    from lagfluid import registry
+    from lagfluid.errors import RolloutError
+    from lagfluid.viz import stopped_title
+
+    assert stopped_title("gns on dam", "", by_guard=True) == "gns on dam"
+    assert stopped_title("gns on dam", "step 57: Courant number 0.61", by_guard=True) == (
+        "gns on dam\nstopped by the guard: step 57: Courant number 0.61"
+    )
+    assert stopped_title("gns on dam", "KeyboardInterrupt: ", by_guard=False) == (
+        "gns on dam\nstopped: KeyboardInterrupt:"
+    )
+    monkeypatch.setitem(registry._REGISTERED, "blows_up", _BlowsUpAtStep2)
+    with pytest.raises(RolloutError, match="step 2: fluid particle 0 has a non-finite velocity"):
+        simulate(_compose("model.name=blows_up", "steps=4", f"out_dir={tmp_path}"))
+    (fig,) = drawn
+    title = fig._suptitle.get_text()
+    assert title.startswith(
+        "blows_up on dam_small\nstopped by the guard: step 2: fluid particle 0 has a non-finite velocity"
+    ), title
+    assert fig.axes[-1].get_ylabel() == "speed (m/s)" and (tmp_path / "preview.png").is_file()

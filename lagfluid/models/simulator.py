@@ -82,6 +82,10 @@ class Simulator(Protocol):
         """
         ...
 
+    # Optional: ``predicts_pressure = False`` for a simulator whose states carry no pressure of its own (GNS,
+    # CConv: zeros); pictures of its rollouts then colour the fluid by speed (lagfluid.viz.colour_field).
+    # Without it a simulator is taken to predict pressure.
+
     # Optional, for a simulator that carries tensors from one step to the next beyond the state (GNS's
     # integrated velocity history), so that a resumed run (``resume=true``) continues bit for bit:
     #   rollout_memory() -> dict[str, Tensor]          after a step: what the next step needs
