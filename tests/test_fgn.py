@@ -506,6 +506,53 @@ def test_a_resumed_training_ends_with_the_uninterrupted_runs_weights(tiny_data, 
     )
 
 
+def _log_rows(path):
+    """The loss log's lines as lists of fields, without the last column (seconds: wall time differs)."""
+    return [line.split(",")[:-1] for line in Path(path).read_text().splitlines()]
+
+
+@pytest.mark.parametrize(
+    ("schedule", "stop_in", "left_on_disk"),
+    [
+        # the checkpoint at 4 falls between the rows at 3 and 6: the row at 6 averages iterations 4 to 6
+        (("train.checkpoint_every=2", "train.log_every=3"), 5, None),
+        # stopped before the first checkpoint: the rerun starts at 0 and must not append to the old rows
+        (("train.checkpoint_every=10", "train.log_every=1"), 5, None),
+        # a kill -9 after the checkpoint at 2 and before the first row: the header never reached the disk
+        (("train.checkpoint_every=2", "train.log_every=3"), 3, ""),
+    ],
+    ids=["checkpoint-between-rows", "before-the-first-checkpoint", "killed-before-the-header-was-written"],
+)
+def test_a_resumed_trainings_loss_log_is_the_uninterrupted_runs(
+    tiny_data, tmp_path, monkeypatch, schedule, stop_in, left_on_disk
+):
+    def config(out):
+        return _train_cfg(tiny_data, out, "stage=collision", "train.valid_every=3", *schedule, iterations=6)
+
+    train(config(tmp_path / "straight"))
+    original, calls = torch.optim.Adam.step, {"n": 0}
+
+    def stopped(self, *args, **kwargs):
+        calls["n"] += 1
+        if calls["n"] == stop_in:
+            raise KeyboardInterrupt
+        return original(self, *args, **kwargs)
+
+    monkeypatch.setattr(torch.optim.Adam, "step", stopped)
+    with pytest.raises(KeyboardInterrupt):
+        train(config(tmp_path / "resumed"))
+    monkeypatch.setattr(torch.optim.Adam, "step", original)
+    log = tmp_path / "resumed" / "collision_loss.csv"
+    if left_on_disk is not None:
+        log.write_text(left_on_disk)
+    train(config(tmp_path / "resumed"))
+    straight = _log_rows(tmp_path / "straight" / "collision_loss.csv")
+    assert straight[0] == ["iteration", "lr", "train_loss", "valid_loss"]
+    logged = ["3", "6"] if "train.log_every=3" in schedule else ["1", "2", "3", "4", "5", "6"]
+    assert [row[0] for row in straight[1:]] == logged
+    assert _log_rows(log) == straight
+
+
 def test_a_training_killed_by_sigkill_resumes_to_the_uninterrupted_runs_weights(tiny_data, tmp_path):
     """A real kill -9 (no exception handler runs), then the same command: the uninterrupted run's weights."""
     iterations = 400
