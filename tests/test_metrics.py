@@ -52,6 +52,17 @@ def test_density_error_averages_compression_and_expansion_as_magnitudes():
     assert m.density_error == pytest.approx((2 * (1.1 / 1.05 - 1) + 2 * 0.02) / 4, rel=1e-12)
 
 
+def test_velocity_divergence_averages_expansion_and_compression_as_magnitudes():
+    # Two pairs far apart, l0 = 1, re = 2.1, n0 = 1: every particle sees w = 2.1/1 - 1 = 1.1 (interior).
+    # Pair 1 separates at 1 m/s: div = 3/n0 * (+1) * 1.1 = +3.3 for both; pair 2 closes at 1 m/s: -3.3.
+    # The metric is the mean magnitude, 3.3; the magnitude of the mean would be 0.
+    pos = torch.tensor([[0.0, 0, 0], [1, 0, 0], [10, 0, 0], [11, 0, 0]], dtype=torch.float64)
+    vel = torch.tensor([[0.0, 0, 0], [1, 0, 0], [0, 0, 0], [-1, 0, 0]], dtype=torch.float64)
+    m = field_metrics(pos, vel, torch.ones(4, dtype=torch.int64), n0=1.0, re_density=2.1, re_gradient=2.1)
+    assert m.interior_particles == 4
+    assert m.velocity_divergence == pytest.approx(3.3, rel=1e-12)
+
+
 def test_kinetic_energy_of_runs_at_two_spacings_uses_each_runs_particle_mass(tmp_path):
     """The same block moving at 1 m/s as 8 particles of l0 = 0.05 and as 1 of l0 = 0.1: the same energy."""
     from lagfluid.data.store import TrajectoryWriter
