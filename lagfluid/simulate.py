@@ -4,7 +4,8 @@
 
 * ``DIR/rollout.h5``   the trajectory (:mod:`lagfluid.data.store`),
 * ``DIR/metrics.json`` counts, median wall time per step and per stage, density error and divergence,
-* ``DIR/preview.png``  first, middle and last frame coloured by pressure.
+* ``DIR/preview.png``  first, middle and last frame coloured by pressure (by speed for a model that predicts
+  none, :func:`lagfluid.viz.colour_field`); a stopped run's title says why.
 
 Outputs are never lost: everything that can be checked before the first step is (dtype, device, scene,
 model and weights) before any file in ``DIR`` is touched, and the new files replace the old ones together
@@ -44,6 +45,7 @@ from lagfluid.physics.stages import SolverSettings, lattice_constants
 from lagfluid.rollout import rollout
 from lagfluid.simulate_resume import RolloutCheckpoint, run_settings
 from lagfluid.state import ParticleState, ParticleType
+from lagfluid.viz import colour_field, field_values, stopped_title
 
 log = logging.getLogger(__name__)
 
@@ -78,11 +80,14 @@ def timing_summary(record: dict[str, Any]) -> dict[str, Any]:
 
 
 class _FrameMetrics:
-    """Density error and divergence of every stored frame, and the three frames of the preview."""
+    """Density error and divergence of every stored frame, and the three frames of the preview.
 
-    def __init__(self, state: ParticleState, settings: SolverSettings, total_frames: int) -> None:
+    The preview's values are ``field``'s (``pressure`` or ``speed``, :func:`lagfluid.viz.colour_field`).
+    """
+
+    def __init__(self, state: ParticleState, settings: SolverSettings, total_frames: int, field: str) -> None:
         params = state.params
-        self.settings, self.params = settings, params
+        self.settings, self.params, self.field = settings, params, field
         self.n0 = lattice_constants(params.l0, settings, params.dim).n0
         self.total_frames = total_frames
         self.density_errors: list[float] = []
@@ -107,7 +112,8 @@ class _FrameMetrics:
         self.divergences.append(m.velocity_divergence)
         # Keep only the first, middle and latest frame for the preview: O(1) memory for long runs.
         index, self.count = self.count, self.count + 1
-        snap = (s.time, s.pos[:nf].cpu().numpy(), s.pressure[:nf].cpu().numpy())
+        values = field_values(self.field, s.vel[:nf].cpu().numpy(), s.pressure[:nf].cpu().numpy())
+        snap = (s.time, s.pos[:nf].cpu().numpy(), values)
         if index == 0:
             self.snapshots["first"] = snap
         if index == self.total_frames // 2:
@@ -126,7 +132,7 @@ class _FrameMetrics:
         }
 
     def load_state_dict(self, saved: dict[str, Any], state: ParticleState) -> None:
-        """Restore :meth:`state_dict`'s values."""
+        """Restore :meth:`state_dict`'s values (the snapshots hold the same simulator's field)."""
         self.density_errors = list(saved["density_errors"])
         self.divergences = list(saved["divergences"])
         self.count = int(saved["count"])
@@ -164,7 +170,7 @@ def _write_preview(out_dir: Path, frames: _FrameMetrics, state: ParticleState, t
     nf = state.n_fluid
     walls = state.pos[nf:][state.ptype[nf:] == ParticleType.WALL]
     try:
-        preview(part_path(out_dir / "preview.png"), shots, walls.cpu().numpy(), title)
+        preview(part_path(out_dir / "preview.png"), shots, walls.cpu().numpy(), title, frames.field)
     except Exception as err:  # the rollout and its metrics matter more than the picture
         part_path(out_dir / "preview.png").unlink(missing_ok=True)
         log.warning("preview.png not written: %s: %s", type(err).__name__, err)
@@ -195,7 +201,7 @@ def simulate(cfg: DictConfig) -> dict[str, Any]:
     params, nf = state.params, state.n_fluid
     write_every = int(cfg.write_every)
     total_frames = int(cfg.steps) // write_every + 1 + (1 if int(cfg.steps) % write_every else 0)
-    frames = _FrameMetrics(state, settings, total_frames)
+    frames = _FrameMetrics(state, settings, total_frames, colour_field(simulator))
     checkpoint = RolloutCheckpoint(
         out_dir, run_settings(cfg), simulator.history_length, float(cfg.checkpoint_every_s)
     )
@@ -251,7 +257,7 @@ def simulate(cfg: DictConfig) -> dict[str, Any]:
         }
         checkpoint.maybe_save(s, writer.frames, extra)
 
-    stop_reason, complete = "", True
+    stop_reason, complete, by_guard = "", True, False
     try:
         _, record = rollout(
             simulator,
@@ -267,7 +273,8 @@ def simulate(cfg: DictConfig) -> dict[str, Any]:
             record=record,
         )
     except BaseException as err:  # a guard stop, a bug, Ctrl-C: the file says the run is incomplete and why
-        stop_reason = str(err) if isinstance(err, RolloutError) else f"{type(err).__name__}: {err}"
+        by_guard = isinstance(err, RolloutError)  # the guard's stop; else Ctrl-C, SIGTERM or a bug
+        stop_reason = str(err) if by_guard else f"{type(err).__name__}: {err}"
         complete = False
         record = getattr(err, "record", record)
         raise
@@ -275,8 +282,7 @@ def simulate(cfg: DictConfig) -> dict[str, Any]:
         try:
             if complete:
                 checkpoint.remove()
-            for key, value in simulator.attributes().items():
-                writer.group.attrs[key] = value
+            writer.set_attributes(simulator.attributes())
             writer.close(complete=complete, stop_reason=stop_reason)
             metrics = {
                 "model": simulator.name,
@@ -304,7 +310,8 @@ def simulate(cfg: DictConfig) -> dict[str, Any]:
                 "git_commit": commit,
             }
             write_json(part_path(out_dir / "metrics.json"), metrics)
-            _write_preview(out_dir, frames, state, f"{simulator.name} on {cfg.scene.name}")
+            title = stopped_title(f"{simulator.name} on {cfg.scene.name}", stop_reason, by_guard)
+            _write_preview(out_dir, frames, state, title)
         finally:  # whatever failed above, the folder holds one run's files
             publish(out_dir, OUTPUTS, complete)
     log.info(

@@ -22,9 +22,12 @@ statistics, options, optimizer, RNG, step; :mod:`lagfluid.models.checkpoint`) an
 **Resume.** A checkpoint is written every ``train.checkpoint_every`` iterations and at the end (atomic
 rename). A rerun with the same command continues from it (weights, optimizer, RNG state and CSV rows after
 the checkpoint dropped) exactly as the uninterrupted run would have (the batch order and each item's random
-draws are functions of the seed and the iteration: :class:`EpochBatches`, :class:`KeyedItems`); a
-finished trainable is skipped; a checkpoint of other network options, data or settings is an error, never
-silently mixed. A non-finite loss stops the run naming the iteration.
+draws are functions of the seed and the iteration: :class:`EpochBatches`, :class:`KeyedItems`), and its
+``<name>_loss.csv`` is the uninterrupted run's row for row, every column but ``seconds`` (wall time): the
+checkpoint carries the losses since the last logged row, and a run stopped before its first checkpoint
+starts its log afresh (:func:`_start_csv`). A finished trainable is skipped; a checkpoint of other network
+options, data or settings is an error, never silently mixed. A non-finite loss stops the run naming the
+iteration.
 
 **On-policy rounds.** ``train.onpolicy.rounds=R`` (with ``stage=all``, or a stage in
 ``train.onpolicy.trainables``) then fine-tunes those networks on R rounds of the model's own rollouts
@@ -143,16 +146,23 @@ def _fingerprint(obj: Any) -> str:
     return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
-def _truncate_csv(path: Path, step: int) -> None:
-    """Drop log rows written after the checkpoint we resume from (they will be recomputed)."""
-    if not path.is_file():
-        return
-    with path.open() as f:
-        rows = list(csv.reader(f))
-    keep = [rows[0]] + [r for r in rows[1:] if r and int(r[0]) <= step] if rows else []
+CSV_HEADER = ("iteration", "lr", "train_loss", "valid_loss", "seconds")
+
+
+def _start_csv(path: Path, step: int) -> None:
+    """The loss log as a run at ``step`` (0: a fresh one) needs it: the header and the rows up to ``step``.
+
+    Rows after the checkpoint a run resumes from are recomputed, so they go, and so do all rows of a run
+    stopped before its first checkpoint (it starts again at 0), and a row a kill cut mid-line. The header is
+    on disk before the first iteration (a kill -9 used to lose it with the first row still buffered).
+    """
+    rows: list[list[str]] = []
+    if path.is_file():
+        with path.open(newline="") as f:
+            rows = [r for r in list(csv.reader(f))[1:] if len(r) == len(CSV_HEADER) and r[0].isdigit()]
     tmp = path.with_name(path.name + ".part")
     with tmp.open("w", newline="") as f:
-        csv.writer(f).writerows(keep)
+        csv.writer(f).writerows([CSV_HEADER, *(r for r in rows if int(r[0]) <= step)])
     os.replace(tmp, path)
 
 
@@ -254,7 +264,7 @@ def train_one(cfg: DictConfig, trainable: Trainable, out_dir: Path) -> dict[str,
     main = distributed.is_main()
     net = trainable.build_network()
     optimizer = torch.optim.Adam(net.parameters(), lr=float(tcfg.lr_start), eps=adam_eps)
-    start_step, elapsed, stats = 0, 0.0, None
+    start_step, elapsed, stats, window = 0, 0.0, None, []
     if init_from and not ckpt_path.is_file():  # fine-tuning: start from trained weights and their statistics
         init = read_checkpoint(Path(str(init_from)) / f"{kind}.pt", kind, model=trainable.model)
         if dict(init["options"]) != options:
@@ -283,9 +293,8 @@ def train_one(cfg: DictConfig, trainable: Trainable, out_dir: Path) -> dict[str,
             return {"kind": kind, "step": start_step, "skipped": True, **meta}
         optimizer.load_state_dict(ckpt["optimizer"])
         torch.set_rng_state(ckpt["rng"])
+        window = [float(v) for v in ckpt.get("loss_window", [])]  # the next log row's losses before the stop
         log.info("%s: resuming at iteration %d from %s", kind, start_step, ckpt_path)
-        if main:
-            _truncate_csv(csv_path, start_step)
 
     train_items, valid_items = trainable.datasets(data_dir)
     if extra_dirs:  # the union: each dataset's train split trains, data.out_dir's valid split validates
@@ -328,11 +337,10 @@ def train_one(cfg: DictConfig, trainable: Trainable, out_dir: Path) -> dict[str,
                 state[key] = value.to(device)
 
     net.train()
-    new_file = not csv_path.is_file()
+    if main:
+        _start_csv(csv_path, start_step)
     csv_file = csv_path.open("a", newline="") if main else open(os.devnull, "w")  # rank 0 writes the log
     writer = csv.writer(csv_file)
-    if new_file and main:
-        writer.writerow(["iteration", "lr", "train_loss", "valid_loss", "seconds"])
 
     def save(step: int) -> None:
         meta = {
@@ -346,12 +354,13 @@ def train_one(cfg: DictConfig, trainable: Trainable, out_dir: Path) -> dict[str,
             "range": trained_range,
         }
         payload = network_payload(net, kind, options, step, meta, model=trainable.model)
-        payload.update(optimizer=optimizer.state_dict(), rng=torch.get_rng_state())
+        # training state, as the optimizer's: the losses since the last logged row, which a resume averages
+        payload.update(optimizer=optimizer.state_dict(), rng=torch.get_rng_state(), loss_window=list(window))
         if main:
             save_checkpoint(ckpt_path, payload)
         distributed.barrier()  # no rank runs ahead of a checkpoint it may have to resume from
 
-    step, window, t_last = start_step, [], time.perf_counter()
+    step, t_last = start_step, time.perf_counter()
     bar = progress_bar(iterations, enabled=bool(cfg.progress), initial=start_step, desc=f"train {kind}")
     try:
         while step < iterations:

@@ -74,11 +74,12 @@ def test_cli_evaluate_writes_every_output(cli_run):
     assert metrics["reference"]["reused"] is False
     assert reference.parent.name.endswith(metrics["reference"]["key_hash"])
     frames = metrics["frames"]
-    for key in ("chamfer_mm", "position_mse_m2", "kinetic_energy_rel_error", "ppe_relative_residual"):
+    for key in ("chamfer_mm", "position_mse_m2", "kinetic_energy_error_rel_peak", "ppe_relative_residual"):
         assert len(frames[key]) == STEPS + 1, key
     for key in ("density_error", "velocity_divergence_per_s", "kinetic_energy_J"):
         assert len(frames[key]["model"]) == len(frames[key]["reference"]) == STEPS + 1
     assert metrics["pressure_slice"]["particles"]["model"] > 0
+    assert metrics["pressure_slice"]["field"] == "pressure"  # MPS predicts a pressure
 
 
 def test_mps_against_itself_has_zero_error(cli_run):
@@ -87,7 +88,7 @@ def test_mps_against_itself_has_zero_error(cli_run):
     # same solver, same initial state, same settings: the two rollouts are identical, bit for bit
     assert frames["position_mse_m2"] == [0.0] * (STEPS + 1)
     assert frames["chamfer_mm"] == [0.0] * (STEPS + 1)
-    assert frames["kinetic_energy_rel_error"] == [0.0] * (STEPS + 1)
+    assert frames["kinetic_energy_error_rel_peak"] == [0.0] * (STEPS + 1)
     assert frames["density_error"]["model"] == frames["density_error"]["reference"]
     assert frames["kinetic_energy_J"]["model"][-1] > 0  # the fluid moves: zero error is not zero motion
     horizons = metrics["summary"]["position_mse_horizons_m2"]
@@ -292,11 +293,39 @@ def test_a_model_that_differs_from_mps_gets_the_errors_computed_by_hand(cli_run,
         assert frames["kinetic_energy_J"]["reference"][k] == pytest.approx(energy, rel=1e-6)
     assert frames["chamfer_mm"][-1] > 0.1 and frames["position_mse_m2"][-1] > 0  # MPS's column did move
     assert frames["kinetic_energy_J"]["model"][1:] == [0.0] * STEPS
-    assert frames["kinetic_energy_rel_error"][1:] == pytest.approx([1.0] * STEPS)  # |0 - E| / E
+    # |0 - E(t)| / max E: the frozen model's error grows with MPS's energy, 1 at MPS's peak
+    energies = [kinetic_energy(ref["velocity"][k], mass) for k in range(STEPS + 1)]
+    expected = [e / max(energies) for e in energies]
+    assert frames["kinetic_energy_error_rel_peak"] == pytest.approx(expected, rel=1e-6)
     # the frozen fluid keeps its initial density error at every frame
     assert frames["density_error"]["model"] == pytest.approx(
         [frames["density_error"]["model"][0]] * (STEPS + 1)
     )
+
+
+class _FrozenWithoutPressure(_Frozen):
+    name, predicts_pressure = "frozen_no_pressure", False
+
+
+def test_the_figures_of_a_model_without_pressure_show_speed(cli_run, tmp_path, monkeypatch):
+    from lagfluid import registry
+    from lagfluid.viz import field_values
+
+    _, ref_dir, _ = cli_run
+    monkeypatch.setitem(registry._REGISTERED, "frozen_no_pressure", _FrozenWithoutPressure)
+    seen = []
+    monkeypatch.setattr(
+        "lagfluid.evaluate.figures.field_values", lambda *args: seen.append(args[0]) or field_values(*args)
+    )
+    cfg = _compose(
+        "model.name=frozen_no_pressure",
+        f"out_dir={tmp_path}",
+        f"evaluate.reference_dir={ref_dir}",
+        "evaluate.figures=true",
+    )
+    metrics = evaluate(cfg)
+    assert metrics["pressure_slice"]["field"] == "speed" and seen == ["speed", "speed"]  # both panels
+    assert (tmp_path / "pressure_slice.png").is_file()
 
 
 def test_unknown_model_is_a_clear_error_before_any_reference_run(tmp_path):

@@ -463,7 +463,7 @@ def test_an_ablation_trains_its_two_nets_and_rolls_out_with_fgns_collision_net(t
     cfg = _compose("task=simulate", "model=fgn_sage", f"model.weights={out}", "scene=dam_small", "steps=5")
     metrics = simulate(OmegaConf.merge(cfg, {"out_dir": str(tmp_path / "roll"), "progress": False}))
     assert metrics["complete"], metrics["stop_reason"]
-    networks = json.loads(metrics["simulator"]["networks"])
+    networks = metrics["simulator"]["networks"]
     assert Path(networks["pressure"]["source"]).parent == out
     assert Path(networks["collision"]["source"]).parent == SHIPPED_WEIGHTS
 
@@ -523,6 +523,53 @@ def test_a_resumed_training_ends_with_the_uninterrupted_runs_weights(tiny_data, 
         ),
         stage,
     )
+
+
+def _log_rows(path):
+    """The loss log's lines as lists of fields, without the last column (seconds: wall time differs)."""
+    return [line.split(",")[:-1] for line in Path(path).read_text().splitlines()]
+
+
+@pytest.mark.parametrize(
+    ("schedule", "stop_in", "left_on_disk"),
+    [
+        # the checkpoint at 4 falls between the rows at 3 and 6: the row at 6 averages iterations 4 to 6
+        (("train.checkpoint_every=2", "train.log_every=3"), 5, None),
+        # stopped before the first checkpoint: the rerun starts at 0 and must not append to the old rows
+        (("train.checkpoint_every=10", "train.log_every=1"), 5, None),
+        # a kill -9 after the checkpoint at 2 and before the first row: the header never reached the disk
+        (("train.checkpoint_every=2", "train.log_every=3"), 3, ""),
+    ],
+    ids=["checkpoint-between-rows", "before-the-first-checkpoint", "killed-before-the-header-was-written"],
+)
+def test_a_resumed_trainings_loss_log_is_the_uninterrupted_runs(
+    tiny_data, tmp_path, monkeypatch, schedule, stop_in, left_on_disk
+):
+    def config(out):
+        return _train_cfg(tiny_data, out, "stage=collision", "train.valid_every=3", *schedule, iterations=6)
+
+    train(config(tmp_path / "straight"))
+    original, calls = torch.optim.Adam.step, {"n": 0}
+
+    def stopped(self, *args, **kwargs):
+        calls["n"] += 1
+        if calls["n"] == stop_in:
+            raise KeyboardInterrupt
+        return original(self, *args, **kwargs)
+
+    monkeypatch.setattr(torch.optim.Adam, "step", stopped)
+    with pytest.raises(KeyboardInterrupt):
+        train(config(tmp_path / "resumed"))
+    monkeypatch.setattr(torch.optim.Adam, "step", original)
+    log = tmp_path / "resumed" / "collision_loss.csv"
+    if left_on_disk is not None:
+        log.write_text(left_on_disk)
+    train(config(tmp_path / "resumed"))
+    straight = _log_rows(tmp_path / "straight" / "collision_loss.csv")
+    assert straight[0] == ["iteration", "lr", "train_loss", "valid_loss"]
+    logged = ["3", "6"] if "train.log_every=3" in schedule else ["1", "2", "3", "4", "5", "6"]
+    assert [row[0] for row in straight[1:]] == logged
+    assert _log_rows(log) == straight
 
 
 def test_a_training_killed_by_sigkill_resumes_to_the_uninterrupted_runs_weights(tiny_data, tmp_path):
@@ -694,7 +741,7 @@ def test_short_rollout_stays_finite_and_writes_the_contract(trained, tmp_path, m
     assert (tmp_path / "rollout.h5").is_file() and (tmp_path / "preview.png").is_file()
     saved = json.loads((tmp_path / "metrics.json").read_text())
     assert saved["model"] == model and "advection" in saved["stage_median_s"]
-    assert json.loads(saved["simulator"]["networks"])["pressure"]["step"] == 60
+    assert saved["simulator"]["networks"]["pressure"]["step"] == 60
 
 
 def test_the_neighbour_list_is_only_as_wide_as_the_stages_need(trained):
@@ -749,8 +796,37 @@ def test_shipped_weights_fit_the_fgn_config_and_roll_out_by_default(tmp_path):
     assert cfg.model.weights is None
     metrics = simulate(cfg)
     assert metrics["complete"], metrics["stop_reason"]
-    networks = json.loads(metrics["simulator"]["networks"])
+    networks = metrics["simulator"]["networks"]
     assert all(Path(networks[k]["source"]).parent == SHIPPED_WEIGHTS for k in networks)
+
+
+def _json_text_inside(value, where="metrics.json"):
+    """The places in a parsed JSON document holding a string that is itself a JSON object or list."""
+    if isinstance(value, dict):
+        return [p for k, v in value.items() for p in _json_text_inside(v, f"{where}.{k}")]
+    if isinstance(value, list):
+        return [p for i, v in enumerate(value) for p in _json_text_inside(v, f"{where}[{i}]")]
+    if isinstance(value, str) and value.strip()[:1] in ("{", "["):
+        try:
+            return [where] if isinstance(json.loads(value), (dict, list)) else []
+        except json.JSONDecodeError:
+            return []
+    return []
+
+
+def test_metrics_json_holds_the_networks_as_an_object_not_json_text(tmp_path):
+    """``simulator.networks`` was a JSON string inside metrics.json; the rollout file keeps the JSON text."""
+    from lagfluid.data.store import read_trajectory
+    from lagfluid.models.fgn.simulator import SHIPPED_WEIGHTS
+
+    simulate(_compose("task=simulate", "model=fgn", "scene=dam_small", "steps=1", f"out_dir={tmp_path}"))
+    saved = json.loads((tmp_path / "metrics.json").read_text())
+    assert _json_text_inside(saved) == []
+    networks = saved["simulator"]["networks"]
+    assert sorted(networks) == ["advection", "collision", "pressure"]
+    assert networks["pressure"]["source"] == str(SHIPPED_WEIGHTS / "pressure.pt")
+    # HDF5 attributes have no dicts: the rollout file holds the same object as JSON text
+    assert json.loads(read_trajectory(tmp_path / "rollout.h5")["attrs"]["networks"]) == networks
 
 
 def test_stage_losses_and_an_unknown_loss_is_named():

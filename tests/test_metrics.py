@@ -14,10 +14,10 @@ from lagfluid.metrics import (
     chamfer_distance,
     field_metrics,
     kinetic_energy,
+    kinetic_energy_error,
     mse_horizons,
     normalized_mae,
     position_mse,
-    relative_error,
     summarize,
 )
 from lagfluid.physics.reference import exact_context, exact_ppe, mps_constants, ppe_relative_residual
@@ -52,6 +52,17 @@ def test_density_error_averages_compression_and_expansion_as_magnitudes():
     assert m.density_error == pytest.approx((2 * (1.1 / 1.05 - 1) + 2 * 0.02) / 4, rel=1e-12)
 
 
+def test_velocity_divergence_averages_expansion_and_compression_as_magnitudes():
+    # Two pairs far apart, l0 = 1, re = 2.1, n0 = 1: every particle sees w = 2.1/1 - 1 = 1.1 (interior).
+    # Pair 1 separates at 1 m/s: div = 3/n0 * (+1) * 1.1 = +3.3 for both; pair 2 closes at 1 m/s: -3.3.
+    # The metric is the mean magnitude, 3.3; the magnitude of the mean would be 0.
+    pos = torch.tensor([[0.0, 0, 0], [1, 0, 0], [10, 0, 0], [11, 0, 0]], dtype=torch.float64)
+    vel = torch.tensor([[0.0, 0, 0], [1, 0, 0], [0, 0, 0], [-1, 0, 0]], dtype=torch.float64)
+    m = field_metrics(pos, vel, torch.ones(4, dtype=torch.int64), n0=1.0, re_density=2.1, re_gradient=2.1)
+    assert m.interior_particles == 4
+    assert m.velocity_divergence == pytest.approx(3.3, rel=1e-12)
+
+
 def test_kinetic_energy_of_runs_at_two_spacings_uses_each_runs_particle_mass(tmp_path):
     """The same block moving at 1 m/s as 8 particles of l0 = 0.05 and as 1 of l0 = 0.1: the same energy."""
     from lagfluid.data.store import TrajectoryWriter
@@ -74,7 +85,7 @@ def test_kinetic_energy_of_runs_at_two_spacings_uses_each_runs_particle_mass(tmp
     energy = 0.5 * 1000.0 * 0.1**3  # J: 1 kg of water at 1 m/s
     assert out["kinetic_energy_J"]["model"] == pytest.approx([energy] * 3, rel=1e-6)
     assert out["kinetic_energy_J"]["reference"] == pytest.approx([energy] * 3, rel=1e-6)
-    assert out["kinetic_energy_rel_error"] == pytest.approx([0.0] * 3, abs=1e-6)
+    assert out["kinetic_energy_error_rel_peak"] == pytest.approx([0.0] * 3, abs=1e-6)
 
 
 def test_field_metrics_without_interior_particles_are_zero():
@@ -140,15 +151,24 @@ def test_mse_horizons_at_and_mean_to_step():
 
 
 # ------------------------------------------------------------------------------------------- kinetic energy
-def test_kinetic_energy_and_its_relative_error_by_hand():
+def test_kinetic_energy_by_hand():
     vel = np.array([[1.0, 0, 0], [0, 2, 0]])
     assert kinetic_energy(vel, particle_mass=2.0) == pytest.approx(0.5 * 2 * (1 + 4))
-    assert relative_error(6.0, 5.0) == pytest.approx(0.2)
-    assert relative_error(4.0, 5.0) == pytest.approx(0.2)
-    assert relative_error(0.0, 0.0) == 0.0
-    assert relative_error(1.0, 0.0) == math.inf
     with pytest.raises(MetricInputError, match="particle_mass"):
         kinetic_energy(vel, 0.0)
+
+
+def test_kinetic_energy_error_is_relative_to_the_references_peak_not_to_each_frame():
+    # A dam at rest at t = 0: the reference's energy starts at 0 and peaks at 4 J. At frame 1 the model has
+    # 0.07 J against 0.01 J: 600 % of that frame's energy, but 0.06 / 4 = 1.5 % of the peak.
+    model = [0.0, 0.07, 1.5, 3.0, 4.4]
+    ref = [0.0, 0.01, 1.0, 4.0, 3.6]
+    assert kinetic_energy_error(model, ref) == pytest.approx([0.0, 0.015, 0.125, 0.25, 0.2], rel=1e-12)
+    assert kinetic_energy_error(ref, ref) == [0.0] * 5
+    # a reference that never moves has no scale: 0 where the model is at rest too, inf where it moves
+    assert kinetic_energy_error([0.0, 0.5], [0.0, 0.0]) == [0.0, math.inf]
+    with pytest.raises(MetricInputError, match="one length"):
+        kinetic_energy_error([1.0, 2.0], [1.0])
 
 
 # ------------------------------------------------------------------------------------------- normalised MAE

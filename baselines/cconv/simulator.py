@@ -72,6 +72,7 @@ class CConvSimulator:
 
     history_length = 0
     last_fields = None
+    predicts_pressure = False  # positions only: previews colour by speed (lagfluid.viz.colour_field)
 
     def __init__(
         self,

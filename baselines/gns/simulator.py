@@ -50,6 +50,7 @@ class GNSSimulator:
 
     name = NAME
     last_fields = None  # no intermediates to declare
+    predicts_pressure = False  # positions only: previews colour by speed (lagfluid.viz.colour_field)
     # One particle spacing per step, under half the connectivity radius: the graph still sees what the step
     # runs into. The training frames (data=cpu, 8 ms apart) reach 0.8; MPS's own limit, 0.5, is for its 2 ms.
     max_courant = 1.0

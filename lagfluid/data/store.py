@@ -144,6 +144,11 @@ class TrajectoryWriter:
         self.frames += 1
         self.file.flush()
 
+    def set_attributes(self, attrs: dict[str, Any]) -> None:
+        """Add group attributes as the constructor does (a dict, or a list of non-numbers, as JSON text)."""
+        for key, value in attrs.items():
+            self.group.attrs[key] = _attr_value(value)
+
     def append_state(self, state: Any) -> None:
         """Append the fluid rows of a :class:`~lagfluid.state.ParticleState` as one frame."""
         nf = state.n_fluid
@@ -200,6 +205,22 @@ def open_lagfluid_file(path: str | os.PathLike, what: str = "trajectory") -> h5p
             f"{path} has format_version {version}; this lagfluid reads {FORMAT_VERSION}"
         )
     return f
+
+
+def read_array(group: h5py.Group, name: str, index: int | tuple = ()) -> np.ndarray:
+    """``group[name][index]`` (a whole array for ``()``, a frame for an int), read or refused by name.
+
+    Raises:
+        TrajectoryFileError: the array is missing, or a chunk of it is damaged (its checksum or
+            decompression fails); the message names the file, the array and the frame.
+    """
+    path, where = group.file.filename, f"frame {index} of '{name}'" if isinstance(index, int) else f"'{name}'"
+    try:
+        return group[name][index]
+    except KeyError as err:
+        raise TrajectoryFileError(f"{path} has no array '{name}' in {group.name}") from err
+    except (OSError, RuntimeError) as err:  # h5py: "Can't synchronously read data (filter returned ...)"
+        raise TrajectoryFileError(f"{path}: {where} is unreadable (damaged file): {err}") from err
 
 
 def read_trajectory(path: str | os.PathLike, group: str = "00000") -> dict[str, Any]:

@@ -35,7 +35,9 @@ NaN when the particle counts differ.
 * ``chamfer_mm``: Chamfer distance model -> MPS (eq. 29) in mm;
 * ``position_mse_m2``: LagrangeBench's position MSE per coordinate (particles keep their index);
 * ``density_error``, ``velocity_divergence_per_s``: of the model and of MPS;
-* ``kinetic_energy_J`` of both and ``kinetic_energy_rel_error = |E_model - E_MPS| / E_MPS``;
+* ``kinetic_energy_J`` of both and
+  ``kinetic_energy_error_rel_peak = |E_model(t) - E_MPS(t)| / max_s E_MPS(s)`` (relative to MPS's peak
+  kinetic energy over the compared frames, not to ``E_MPS(t)``: the dam starts at rest);
 * one-step errors of the model's step that produced the frame, against the exact stage at the same input
   (paper Table 4; null at frame 0, and for a stage the model does not have):
   ``advection_nmae`` (eq. 32, the advection acceleration against ``g + nu lap(v)``) and

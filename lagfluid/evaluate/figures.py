@@ -1,4 +1,7 @@
-"""The figures of an evaluation: errors against time (paper Fig. 4) and a pressure slice (Fig. 6)."""
+"""The figures of an evaluation: errors against time (paper Fig. 4) and a pressure slice (Fig. 6).
+
+The slice shows speed instead for a model that predicts no pressure (:func:`lagfluid.viz.colour_field`).
+"""
 
 from __future__ import annotations
 
@@ -11,6 +14,7 @@ from lagfluid.errors import RolloutError
 from lagfluid.evaluate.compare import Trajectory, common_frames
 from lagfluid.evaluate.options import SLICE_AXES, EvaluateOptions
 from lagfluid.state import ParticleType
+from lagfluid.viz import FIELDS, field_values
 
 
 def plot_errors(path: Path, frames: dict[str, Any], title: str) -> Path:
@@ -23,7 +27,8 @@ def plot_errors(path: Path, frames: dict[str, Any], title: str) -> Path:
     t = np.asarray(frames["time_s"])
     # Fixed margins rather than a layout engine: the constrained layout dominated the time per figure.
     fig, axes = plt.subplots(2, 3, figsize=(13, 6.5))
-    fig.subplots_adjust(left=0.06, right=0.99, bottom=0.08, top=0.93, wspace=0.28, hspace=0.3)
+    top = 0.93 - 0.035 * title.count("\n")  # room for a stopped run's reason under the title
+    fig.subplots_adjust(left=0.06, right=0.99, bottom=0.08, top=top, wspace=0.28, hspace=0.3)
     model_style, ref_style = {"color": "C0", "label": "model"}, {"color": "k", "ls": "--", "label": "MPS"}
 
     def both(ax: Any, key: str, ylabel: str) -> None:
@@ -63,14 +68,17 @@ def plot_pressure_slice(
     reference_path: Path,
     options: EvaluateOptions,
     title: str,
+    field: str = "pressure",
 ) -> dict[str, Any]:
     """Paper Fig. 6: pressure on a vertical slab through the tank, model and MPS, one colour scale.
 
     The frame is the common stored frame nearest ``options.slice_time`` (the middle one when None); the slab
     holds the particles within ``slice_width / 2`` l0 of the plane ``slice_axis = slice_position``.
+    ``field="speed"`` colours both panels by speed (a model that predicts no pressure).
 
     Returns:
-        Where the slice is: ``time_s``, ``axis``, ``position_m``, ``width_l0``, ``particles`` per panel.
+        Where the slice is and what it shows: ``time_s``, ``axis``, ``position_m``, ``width_l0``,
+        ``field``, ``particles`` per panel.
     """
     import matplotlib
 
@@ -98,14 +106,15 @@ def plot_pressure_slice(
         half = 0.5 * options.slice_width * l0
         panels = []
         for name, traj, index in (("model", model, i_model), ("MPS", ref, i_ref)):
-            pos, _, p = traj.frame(index)
+            pos, vel, p = traj.frame(index)
             inside = np.abs(pos[:, axis] - centre) < half
-            panels.append((name, pos[inside], p[inside]))
+            panels.append((name, pos[inside], field_values(field, vel[inside], p[inside])))
         bnd = ref.boundary_position
         walls = bnd[(np.abs(bnd[:, axis] - centre) < half) & (ref.boundary_type == int(ParticleType.WALL))]
         pmax = max((float(p.max()) for _, _, p in panels if p.size), default=0.0) or 1.0
         fig, axes = plt.subplots(1, 2, figsize=(11, 4.2), sharex=True, sharey=True)
-        fig.subplots_adjust(left=0.07, right=0.88, bottom=0.12, top=0.86, wspace=0.08)
+        top = 0.8 - 0.05 * title.count("\n")  # the title, its stop reason and the slab's line
+        fig.subplots_adjust(left=0.07, right=0.88, bottom=0.12, top=top, wspace=0.08)
         sc = None
         for ax, (name, pos, p) in zip(axes, panels, strict=True):
             ax.scatter(walls[:, across], walls[:, 2], s=6, c="0.8", marker="s", linewidths=0)
@@ -114,8 +123,9 @@ def plot_pressure_slice(
             ax.set_aspect("equal")
             ax.set_xlabel("xyz"[across] + " (m)")
         axes[0].set_ylabel("z (m)")
-        fig.colorbar(sc, cax=fig.add_axes((0.9, 0.15, 0.015, 0.68)), label="pressure (Pa)")
-        fig.suptitle(f"{title}: pressure on the slab |{options.slice_axis} - {centre:.3f} m| < {half:.3f} m")
+        fig.colorbar(sc, cax=fig.add_axes((0.9, 0.15, 0.015, top - 0.18)), label=FIELDS[field])
+        slab = f"|{options.slice_axis} - {centre:.3f} m| < {half:.3f} m"
+        fig.suptitle(f"{title}\n{field} on the slab {slab}")
         fig.savefig(path, dpi=110)
         plt.close(fig)
         return {
@@ -124,6 +134,7 @@ def plot_pressure_slice(
             "axis": options.slice_axis,
             "position_m": float(centre),
             "width_l0": options.slice_width,
+            "field": field,
             "particles": {name: len(p) for name, _, p in panels},
         }
     finally:

@@ -138,8 +138,7 @@ def run_model(
     except BaseException as err:
         writer.close(complete=False, stop_reason=f"{type(err).__name__}: {err}")
         raise
-    for k, v in simulator.attributes().items():
-        writer.group.attrs[k] = v
+    writer.set_attributes(simulator.attributes())
     writer.close(complete=complete, stop_reason=stop_reason)
     record.setdefault("stage_seconds", {})
     record.setdefault("info", {})

@@ -34,6 +34,7 @@ from lagfluid.models.simulator import Simulator
 from lagfluid.outputs import begin, part_path, publish, write_json
 from lagfluid.physics.stages import SolverSettings
 from lagfluid.state import ParticleState
+from lagfluid.viz import colour_field, stopped_title
 
 log = logging.getLogger(__name__)
 
@@ -149,12 +150,16 @@ def _compare_and_write(
 
     slice_info = None
     if options.figures:
-        title = f"{simulator.name} vs MPS on {cfg.scene.name}"
+        # a model stops only by the guard here (run_model); a model without pressure is shown by speed
+        title = stopped_title(
+            f"{simulator.name} vs MPS on {cfg.scene.name}", run["stop_reason"], by_guard=True
+        )
+        field = colour_field(simulator)
         try:
             plot_errors(part_path(out_dir / "error_vs_time.png"), frames, title)
             slice_path = part_path(out_dir / "pressure_slice.png")
-            slice_info = plot_pressure_slice(slice_path, model_path, reference_path, options, title)
-            side_by_side(model_path, reference_path, part_path(out_dir / "side_by_side.gif"))
+            slice_info = plot_pressure_slice(slice_path, model_path, reference_path, options, title, field)
+            side_by_side(model_path, reference_path, part_path(out_dir / "side_by_side.gif"), field)
         except Exception as err:  # the metrics matter more than the pictures
             for name in ("error_vs_time.png", "pressure_slice.png", "side_by_side.gif"):
                 part_path(out_dir / name).unlink(missing_ok=True)

@@ -14,10 +14,11 @@ from pathlib import Path
 
 import numpy as np
 
-from lagfluid.data.store import open_lagfluid_file
+from lagfluid.data.store import open_lagfluid_file, read_array
 from lagfluid.errors import ConfigError
+from lagfluid.viz import FIELDS
 
-COLORS = {"pressure": "pressure (Pa)", "speed": "speed (m/s)"}
+COLORS = FIELDS  # what animation.color may name, and its colour bar's label
 
 
 def _frame_indices(times: Sequence[np.ndarray], max_frames: int) -> list[list[int]]:
@@ -38,10 +39,11 @@ def _walls_in_mid_plane(g) -> np.ndarray:
 
     The tank's cross-section (floor and end walls), not the side walls that would cover the whole view.
     """
-    walls = g["boundary_position"][()][g["boundary_type"][()] == 2]
+    walls = read_array(g, "boundary_position")[read_array(g, "boundary_type") == 2]
     if not len(walls):
         return walls
-    middle = float(np.median(g["position"][0][:, 1])) if g["position"].shape[1] else float(walls[:, 1].mean())
+    fluid = read_array(g, "position", 0)
+    middle = float(np.median(fluid[:, 1])) if len(fluid) else float(walls[:, 1].mean())
     nearest = walls[np.argmin(np.abs(walls[:, 1] - middle)), 1]
     return walls[np.abs(walls[:, 1] - nearest) < 0.25 * float(g.attrs.get("l0", 0.05))]
 
@@ -91,13 +93,16 @@ def animate(
     files = [open_lagfluid_file(path) for path in rollouts]
     try:
         groups = [f["00000"] for f in files]
-        frames = _frame_indices([g["time"][()] for g in groups], max_frames)
+        times = [read_array(g, "time") for g in groups]
+        frames = _frame_indices(times, max_frames)
         titles = list(
             titles or [f"{g.attrs.get('model', '?')} on {g.attrs.get('scene', '?')}" for g in groups]
         )
 
         def field(g, k: int) -> np.ndarray:
-            return g["pressure"][k] if color == "pressure" else np.linalg.norm(g["velocity"][k], axis=1)
+            if color == "pressure":
+                return read_array(g, "pressure", k)
+            return np.linalg.norm(read_array(g, "velocity", k), axis=1)
 
         drawn = np.concatenate([field(g, row[i]) for row in frames for i, g in enumerate(groups)])
         high = float(np.percentile(drawn, 99)) if drawn.size else 1.0
@@ -107,7 +112,7 @@ def animate(
         for ax, g, title, first in zip(axes[0], groups, titles, frames[0], strict=True):
             walls = _walls_in_mid_plane(g)
             ax.scatter(walls[:, 0], walls[:, 2], s=2, c="0.55", linewidths=0)
-            pos = g["position"][first]
+            pos = read_array(g, "position", first)
             dot = ax.scatter(pos[:, 0], pos[:, 2], s=3, c=field(g, first), cmap="viridis", vmin=0, vmax=high)
             dots.append(dot)
             everything = np.concatenate([walls[:, [0, 2]], pos[:, [0, 2]]]) if len(walls) else pos[:, [0, 2]]
@@ -123,10 +128,10 @@ def animate(
 
         def draw(row: list[int]) -> list:
             for dot, g, k in zip(dots, groups, row, strict=True):
-                pos = g["position"][k]
+                pos = read_array(g, "position", k)
                 dot.set_offsets(pos[:, [0, 2]])
                 dot.set_array(field(g, k))
-            clock.set_text(f"t = {float(groups[0]['time'][row[0]]):.3f} s")
+            clock.set_text(f"t = {float(times[0][row[0]]):.3f} s")
             return [*dots, clock]
 
         movie = animation.FuncAnimation(fig, draw, frames=frames, blit=False)

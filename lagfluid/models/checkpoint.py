@@ -12,7 +12,8 @@ A checkpoint is a ``dict`` saved with :func:`torch.save` that :func:`torch.load`
     state_dict    weights and normalisation statistics (buffers)
     step          training iterations done
     meta          free-form provenance: data, training profile, time, package version, ...
-    optimizer, rng   (training checkpoints only) to resume exactly
+    optimizer, rng, loss_window   (training checkpoints only) to resume exactly (loss_window: the losses
+                  since the last row of the loss log)
 
 This module knows no network: the model's trainable (or loader) rebuilds the network from ``options``.
 Writes are atomic: a temporary file in the same directory, then a rename.

@@ -75,8 +75,16 @@ class Simulator(Protocol):
         ...
 
     def attributes(self) -> dict[str, Any]:
-        """Scalars worth storing with a rollout (reference densities, where the weights came from, ...)."""
+        """Values worth storing with a rollout (reference densities, where the weights came from, ...).
+
+        Numbers, strings, or dicts and lists of them: ``metrics.json`` holds them as they are, the rollout
+        file's attributes hold a dict as its JSON text (HDF5 attributes have no dicts).
+        """
         ...
+
+    # Optional: ``predicts_pressure = False`` for a simulator whose states carry no pressure of its own (GNS,
+    # CConv: zeros); pictures of its rollouts then colour the fluid by speed (lagfluid.viz.colour_field).
+    # Without it a simulator is taken to predict pressure.
 
     # Optional, for a simulator that carries tensors from one step to the next beyond the state (GNS's
     # integrated velocity history), so that a resumed run (``resume=true``) continues bit for bit:

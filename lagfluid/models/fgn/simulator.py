@@ -15,7 +15,6 @@ which they do not change); for ``format=original``, the authors' published netwo
 
 from __future__ import annotations
 
-import json
 import logging
 from collections.abc import Sequence
 from pathlib import Path
@@ -65,8 +64,11 @@ class LearnedSplitStep(SplitStepSimulator):
         return sum(int(n["parameters"]) for n in self.networks.values())
 
     def attributes(self) -> dict[str, Any]:
-        """MPS constants plus ``networks`` (JSON: per learned stage its file, format, step, parameters)."""
-        return {**super().attributes(), "networks": json.dumps(self.networks)}
+        """MPS constants plus ``networks``: per learned stage its file, format, step, range and parameters.
+
+        A dict (``metrics.json`` holds it as an object; the rollout file's attribute is its JSON text).
+        """
+        return {**super().attributes(), "networks": self.networks}
 
 
 def _plain(node: Any) -> dict[str, Any]:

@@ -125,6 +125,7 @@ class TinyMLPSimulator:
     history_length = 0  # velocities are in the state
     max_courant = None  # the run's solver.guard
     last_fields = None  # no intermediates to declare
+    predicts_pressure = False  # its states carry zero pressure
 
     def __init__(self, net: TinyMLPNet) -> None:
         self.net = net.eval()
