@@ -36,7 +36,7 @@ from lagfluid.config import (
     run_attributes,
     run_guard,
 )
-from lagfluid.data.store import TrajectoryWriter, open_lagfluid_file
+from lagfluid.data.store import TrajectoryWriter, open_lagfluid_file, stored_dtype
 from lagfluid.errors import RolloutError
 from lagfluid.metrics import field_metrics, summarize
 from lagfluid.outputs import begin, part_path, publish, write_json
@@ -232,6 +232,7 @@ def simulate(cfg: DictConfig) -> dict[str, Any]:
             state.pos[boundary].cpu().numpy(),
             state.ptype[boundary].cpu().numpy(),
             attrs,
+            dtype=stored_dtype(state),
         )
     commit = str(writer.group.attrs.get("git_commit", ""))
     start = time.perf_counter()
