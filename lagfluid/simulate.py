@@ -284,6 +284,8 @@ def _simulate_in(
     except BaseException as err:  # a guard stop, a bug, Ctrl-C: the file says the run is incomplete and why
         stop_reason = str(err) if isinstance(err, RolloutError) else f"{type(err).__name__}: {err}"
         complete = False
+        if isinstance(err, KeyboardInterrupt):  # Ctrl-C or SIGTERM: resume=true continues from the last frame
+            checkpoint.save_latest()
         record = getattr(err, "record", record)
         raise
     finally:
