@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 from hydra import compose, initialize_config_dir
 
-from lagfluid.locks import OutputsInUse, hold_outputs, lock_path, wait_for_lock
+from lagfluid.locks import OutputsInUse, hold_outputs, lock_path
 from lagfluid.outputs import part_path, publish
 from lagfluid.run import CONF_DIR
 from lagfluid.simulate import simulate
@@ -162,26 +162,33 @@ def test_every_task_that_writes_takes_its_lock(tmp_path):
             holder.release()
 
 
-def test_a_waiting_reference_says_what_it_waits_for_and_who_holds_it(tmp_path, caplog):
-    path = lock_path(tmp_path, "reference")
-    holder = _Holder(tmp_path, "evaluate", ("reference",))
-    waiting = "waiting for the MPS reference in X: pid"
+def test_an_evaluation_waiting_for_a_held_reference_says_for_what_and_whom(tmp_path, caplog):
+    from lagfluid.evaluate.options import EvaluateOptions
+    from lagfluid.evaluate.reference import key_hash, reference_key, reference_rollout
+
+    cfg = _compose("model=mps", "steps=2", f"evaluate.reference_dir={tmp_path}")
+    folder = tmp_path / f"{cfg.scene.name}-{key_hash(reference_key(cfg))}"
+    holder = _Holder(folder, "evaluate", ("reference",))  # another evaluation computing this reference
+    waiting = f"waiting for the MPS reference in {folder}: pid {holder.proc.pid} on "
+    logged = threading.Event()
 
     def release_once_logged() -> None:  # the wait is logged before it blocks; then the holder lets go
-        while not any(waiting in r.getMessage() for r in caplog.records):
+        for _ in range(2000):  # at most ~20 s: without the line the test fails, it does not hang
+            if any(r.getMessage().startswith(waiting) for r in caplog.records):
+                logged.set()
+                break
             threading.Event().wait(0.01)
         holder.release()
 
     releaser = threading.Thread(target=release_once_logged, daemon=True)
-    with caplog.at_level(logging.INFO, logger="lagfluid.locks"):
+    with caplog.at_level(logging.INFO, logger="lagfluid"):
         releaser.start()
-        with wait_for_lock(path, "evaluate", "the MPS reference in X"):
-            assert str(os.getpid()) in path.read_text()
+        path, reused, _ = reference_rollout(cfg, EvaluateOptions.from_config(cfg.evaluate))
     releaser.join(timeout=60)
-    [line] = [r.getMessage() for r in caplog.records if waiting in r.getMessage()]
-    assert line.startswith(f"{waiting} {holder.proc.pid} on ") and "(task=evaluate" in line
-    assert line.endswith("holds its lock")
-    assert not path.exists()
+    assert logged.is_set() and path == folder / "rollout.h5" and not reused
+    [line] = [r.getMessage() for r in caplog.records if r.getMessage().startswith(waiting)]
+    assert "(task=evaluate: task=evaluate), since " in line and line.endswith("holds its lock")
+    assert not lock_path(folder, "reference").exists()
 
 
 def test_a_run_that_wrote_no_rollout_leaves_the_earlier_files_alone(tmp_path, caplog):

@@ -96,6 +96,9 @@ def test_resume_refuses_other_settings_and_a_folder_without_a_checkpoint(tmp_pat
             simulate(_compose("steps=6", out))
     with pytest.raises(RolloutError, match=r"other settings \(dt: None -> 0.001"):
         simulate(_compose("steps=6", "dt=0.001", "resume=true", out))
+    # frames on other steps would not continue the file: write_every is a setting of the run, not free
+    with pytest.raises(RolloutError, match=r"other settings \(write_every: 1 -> 2\); repeat its command"):
+        simulate(_compose("steps=6", "write_every=2", "resume=true", out))
     with pytest.raises(RolloutError, match="at step 4, past steps=3"):
         simulate(_compose("steps=3", "resume=true", out))
     # the refusals touched nothing: the stopped run still resumes, and may run longer than asked first

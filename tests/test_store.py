@@ -84,7 +84,9 @@ def test_a_float64_run_far_from_the_origin_stores_its_exact_positions(tmp_path):
     """A grid 1e6 m out (the float32 refusal advises dtype=float64): stored as computed, read back exactly."""
     import torch
     from hydra import compose, initialize_config_dir
+    from omegaconf import OmegaConf
 
+    from lagfluid.evaluate import evaluate
     from lagfluid.run import CONF_DIR
     from lagfluid.scenes import build_scene
     from lagfluid.simulate import simulate
@@ -109,3 +111,15 @@ def test_a_float64_run_far_from_the_origin_stores_its_exact_positions(tmp_path):
     last = build_scene("trajectory", path=str(tmp_path / "rollout.h5"), frame=-1, dtype=torch.float64)
     np.testing.assert_array_equal(last.pos[:nf].numpy(), out["position"][-1])
     np.testing.assert_array_equal(last.vel[:nf].numpy(), out["velocity"][-1])
+    # task=evaluate stores its model's rollout the same way and compares float64 files: MPS against MPS is 0
+    evaluated = evaluate(
+        OmegaConf.merge(
+            cfg,
+            {"task": "evaluate", "out_dir": str(tmp_path / "evaluate")},
+            {"evaluate": {"reference_dir": str(tmp_path / "reference"), "figures": False}},
+        )
+    )
+    model = read_trajectory(tmp_path / "evaluate" / "rollout.h5")
+    assert model["position"].dtype == np.float64
+    np.testing.assert_array_equal(model["position"], out["position"])
+    assert evaluated["summary"]["chamfer_mm"]["max"] == 0.0
