@@ -152,9 +152,7 @@ class RolloutCheckpoint:
             "state": state,
             "frames": int(frames),
             "history": list(self.before)[-self.history_length :] if self.history_length else [],
-            "memory": {
-                k: v.detach().clone() for k, v in memory.items()
-            },  # a simulator may update it in place
+            "memory": {k: v.detach().clone() for k, v in memory.items()},  # a step may change it in place
             "extra": extra,
             "lengths": _lengths(extra),
         }
