@@ -63,6 +63,9 @@ def _complete_rollout(path: Path) -> bool:
 def publish(out_dir: Path, names: Sequence[str], complete: bool) -> None:
     """Move this run's part files of ``names`` into place; an earlier file this run did not write goes too.
 
+    A run without its rollout's part file (it failed before writing it) publishes nothing: its other part
+    files are dropped and the folder's files stay as they were.
+
     Args:
         out_dir: the run's folder.
         names: its output file names; ``names[0]`` is the rollout whose ``complete`` flag marks a finished
@@ -70,6 +73,11 @@ def publish(out_dir: Path, names: Sequence[str], complete: bool) -> None:
         complete: whether this run finished; if not, a finished earlier run's files move to ``previous/``
             (and a finished run removes ``previous/``: it holds the last complete run only).
     """
+    if not part_path(out_dir / names[0]).exists():  # no rollout of this run: nothing of it to publish
+        for name in names:
+            part_path(out_dir / name).unlink(missing_ok=True)
+        log.warning("this run wrote no %s; the files in %s are left as they were", names[0], out_dir)
+        return
     old = [out_dir / name for name in names if (out_dir / name).exists()]
     if complete:  # a complete run supersedes the one an incomplete run had set aside
         shutil.rmtree(out_dir / "previous", ignore_errors=True)

@@ -37,12 +37,14 @@ from lagfluid.config import (
     run_attributes,
     run_guard,
 )
-from lagfluid.data.store import TrajectoryWriter, open_lagfluid_file
+from lagfluid.data.store import TrajectoryWriter, open_lagfluid_file, stored_dtype
 from lagfluid.errors import RolloutError
+from lagfluid.locks import hold_outputs
 from lagfluid.metrics import field_metrics, summarize
+from lagfluid.models.simulator import Simulator
 from lagfluid.outputs import begin, part_path, publish, write_json
 from lagfluid.physics.stages import SolverSettings, lattice_constants
-from lagfluid.rollout import rollout
+from lagfluid.rollout import Guard, rollout
 from lagfluid.simulate_resume import RolloutCheckpoint, run_settings
 from lagfluid.state import ParticleState, ParticleType
 from lagfluid.viz import colour_field, field_values, stopped_title
@@ -196,8 +198,20 @@ def simulate(cfg: DictConfig) -> dict[str, Any]:
     settings = SolverSettings.from_config(cfg.solver)
     guard = run_guard(cfg, simulator)
     simulator.reset(state, history)  # per-scene set-up can fail too (a plugin's checks, the history)
-
     out_dir = Path(cfg.out_dir)
+    with hold_outputs(out_dir, "simulate"):  # a second run into out_dir is refused, before it touches it
+        return _simulate_in(out_dir, cfg, state, simulator, settings, guard)
+
+
+def _simulate_in(
+    out_dir: Path,
+    cfg: DictConfig,
+    state: ParticleState,
+    simulator: Simulator,
+    settings: SolverSettings,
+    guard: Guard,
+) -> dict[str, Any]:
+    """The run of :func:`simulate` once everything is checked and ``out_dir`` is locked."""
     params, nf = state.params, state.n_fluid
     write_every = int(cfg.write_every)
     total_frames = int(cfg.steps) // write_every + 1 + (1 if int(cfg.steps) % write_every else 0)
@@ -238,6 +252,7 @@ def simulate(cfg: DictConfig) -> dict[str, Any]:
             state.pos[boundary].cpu().numpy(),
             state.ptype[boundary].cpu().numpy(),
             attrs,
+            dtype=stored_dtype(state),
         )
     commit = str(writer.group.attrs.get("git_commit", ""))
     start = time.perf_counter()
@@ -276,6 +291,8 @@ def simulate(cfg: DictConfig) -> dict[str, Any]:
         by_guard = isinstance(err, RolloutError)  # the guard's stop; else Ctrl-C, SIGTERM or a bug
         stop_reason = str(err) if by_guard else f"{type(err).__name__}: {err}"
         complete = False
+        if isinstance(err, KeyboardInterrupt):  # Ctrl-C or SIGTERM: resume=true continues from the last frame
+            checkpoint.save_latest()
         record = getattr(err, "record", record)
         raise
     finally:

@@ -3,7 +3,9 @@
 While a run goes, :class:`RolloutCheckpoint` saves ``out_dir/resume.pt`` at a stored frame at most every
 ``checkpoint_every_s`` seconds (atomically: a kill -9 mid-save keeps the previous one): the state at full
 precision, the ``history_length`` states before it (GNS's velocity history), the frames written so far, the
-per-step record and the frame metrics. A resumed run
+per-step record and the frame metrics. A run stopped by Ctrl-C or SIGTERM saves its last stored frame before
+it exits (:meth:`RolloutCheckpoint.save_latest`), so it continues even when it stopped before its first
+periodic save. A resumed run
 
 1. refuses a command that would compute something else (every config key but ``steps``, ``resume``,
    ``progress``, ``threads``, ``checkpoint_every_s`` and ``out_dir`` must match; the message names the keys),
@@ -69,6 +71,24 @@ def _state_fields(state: ParticleState) -> dict[str, Any]:
     return {**fields, "time": float(state.time), "step": int(state.step)}
 
 
+def _lengths(value: Any) -> Any:
+    """The length of every list and the keys of every dict in ``value`` (nested): what :func:`_cut` keeps."""
+    if isinstance(value, dict):
+        return {k: _lengths(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return len(value)
+    return None
+
+
+def _cut(value: Any, lengths: Any) -> Any:
+    """``value`` as it was when :func:`_lengths` measured it, for lists that have only grown since."""
+    if isinstance(value, dict):
+        return {k: _cut(value[k], n) for k, n in lengths.items()}
+    if isinstance(value, list):
+        return value[:lengths]
+    return value
+
+
 def _plain(value: Any) -> Any:
     """``value`` with numpy and 0-d tensor scalars as numbers (``torch.load(weights_only=True)`` reads it)."""
     if isinstance(value, dict):
@@ -102,6 +122,10 @@ class RolloutCheckpoint:
         self.memory: Any = None  # the simulator's rollout_memory(), if it has one (see Simulator)
         self.stepped = False  # a step was taken in this process: the start itself is never saved
         self.last_save = time.perf_counter()
+        # The last frame that could be saved, as maybe_save saw it, for save_latest; and the frames of the
+        # last save. States are kept by reference: a step makes a new state (the history relies on it too).
+        self.latest: dict[str, Any] | None = None
+        self.saved_frames = -1
 
     def on_step(self, before: ParticleState, after: ParticleState, fields: Any) -> None:
         """Remember the states before the current one (a rollout ``on_step`` hook)."""
@@ -112,28 +136,46 @@ class RolloutCheckpoint:
     def maybe_save(self, state: ParticleState, frames: int, extra: dict[str, Any]) -> None:
         """Save after a stored frame when ``every_s`` has passed (and the history is complete).
 
+        Otherwise remember the frame for :meth:`save_latest`.
+
         Args:
             state: the frame just stored.
             frames: frames in the trajectory file, this one included.
-            extra: what the task restores besides the state (the record, its metrics' state).
+            extra: what the task restores besides the state (the record, its metrics' state); its lists may
+                grow after this call (the rollout's record does), dicts may gain keys: what they hold now is
+                what is saved.
         """
         if not self.stepped or len(self.before) < self.history_length:  # never the start itself
             return
-        if time.perf_counter() - self.last_save < self.every_s:
-            return
-        history = list(self.before)[-self.history_length :] if self.history_length else []
         memory = self.memory() if self.memory else {}
+        self.latest = {
+            "state": state,
+            "frames": int(frames),
+            "history": list(self.before)[-self.history_length :] if self.history_length else [],
+            "memory": {k: v.detach().clone() for k, v in memory.items()},  # a step may change it in place
+            "extra": extra,
+            "lengths": _lengths(extra),
+        }
+        if time.perf_counter() - self.last_save >= self.every_s:
+            self.save_latest()
+
+    def save_latest(self) -> None:
+        """Save the last frame :meth:`maybe_save` saw, unless saved already (also on Ctrl-C and SIGTERM)."""
+        latest = self.latest
+        if latest is None or latest["frames"] == self.saved_frames:
+            return
         payload = {
             "settings": json.dumps(self.settings, sort_keys=True, default=str),
-            "frames": int(frames),
-            "state": _state_fields(state),
-            "history": [_state_fields(s) for s in history],
-            "memory": {k: v.detach().cpu().clone() for k, v in memory.items()},
-            "extra": _plain(extra),
+            "frames": latest["frames"],
+            "state": _state_fields(latest["state"]),
+            "history": [_state_fields(s) for s in latest["history"]],
+            "memory": {k: v.cpu() for k, v in latest["memory"].items()},
+            "extra": _plain(_cut(latest["extra"], latest["lengths"])),
         }
         tmp = self.path.with_name(self.path.name + ".part")
         torch.save(payload, tmp)
         os.replace(tmp, self.path)  # a kill mid-save keeps the previous checkpoint
+        self.saved_frames = latest["frames"]
         self.last_save = time.perf_counter()
 
     def remove(self) -> None:
@@ -152,8 +194,8 @@ class RolloutCheckpoint:
         if not self.path.is_file():
             raise RolloutError(
                 f"resume=true: nothing to resume in {self.path.parent}: no {CHECKPOINT} (the run there "
-                "completed, or stopped before its first checkpoint; checkpoint_every_s sets how often one "
-                "is written)"
+                "completed, or stopped before it stored a frame after its start and its history: run it "
+                "again without resume=true)"
             )
         try:
             saved = torch.load(self.path, map_location="cpu", weights_only=True)

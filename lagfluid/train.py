@@ -42,6 +42,7 @@ weights' folder).
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import hashlib
 import json
@@ -64,6 +65,7 @@ from lagfluid import distributed
 from lagfluid.config import apply_threads, run_device
 from lagfluid.data.datasets import load_metadata
 from lagfluid.errors import ConfigError, LagfluidError
+from lagfluid.locks import hold_outputs
 from lagfluid.models.checkpoint import export_weights, network_payload, read_checkpoint, save_checkpoint
 from lagfluid.models.trainable import Trainable
 from lagfluid.models.training_range import UNITS, range_from_checkpoint_meta, training_range
@@ -452,6 +454,22 @@ def train(cfg: DictConfig) -> list[dict[str, Any]]:
         check_same_scenes(cfg)
     apply_threads(cfg)
     out_dir = Path(str(cfg.out_dir))
+    # each trainable's files are locked, not the folder: a sweep over stage trains them side by side in it;
+    # under torchrun rank 0 writes them (and holds the locks)
+    locks = hold_outputs(out_dir, "train", names) if distributed.is_main() else contextlib.nullcontext()
+    with locks:
+        return _train_in(cfg, trainables, names, onpolicy, with_rounds, out_dir)
+
+
+def _train_in(
+    cfg: DictConfig,
+    trainables: dict[str, Trainable],
+    names: list[str],
+    onpolicy: OnPolicy,
+    with_rounds: bool,
+    out_dir: Path,
+) -> list[dict[str, Any]]:
+    """The training of :func:`train` once its trainables' files in ``out_dir`` are locked."""
     out_dir.mkdir(parents=True, exist_ok=True)
     summaries = [train_one(cfg, trainables[name], out_dir) for name in names]
     sources = dict.fromkeys(names, out_dir)  # where each trained network ends up

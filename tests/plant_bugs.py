@@ -264,6 +264,77 @@ PLANTS = [
         "dir: ${out_dir}",
         "tests/test_export.py::test_cli_export_of_a_damaged_run_is_one_line_and_makes_no_folder_of_its_own",
     ),
+    # issue 34 (output folders, locks, stored precision, resume)
+    (
+        "resume accepting a changed write_every",
+        "lagfluid/simulate_resume.py",
+        '"threads", "checkpoint_every_s", "out_dir")',
+        '"threads", "checkpoint_every_s", "out_dir", "write_every")',
+        "tests/test_simulate_resume.py::test_resume_refuses_other_settings_and_a_folder_without_a_checkpoint",
+    ),
+    (
+        "simulate skips its out_dir lock",
+        "lagfluid/simulate.py",
+        '    with hold_outputs(out_dir, "simulate"):',
+        "    if True:  # planted",
+        "tests/test_run_lock.py::test_a_second_simulate_into_a_held_out_dir_is_refused_by_name_and_touches_nothing",
+    ),
+    (
+        "Hydra writes .hydra/ into an out_dir another run holds",
+        "lagfluid/locks.py",
+        "            check_out_dir(folder)\n",
+        "            pass  # planted\n",
+        "tests/test_run_lock.py::test_a_second_simulate_into_a_held_out_dir_is_refused_by_name_and_touches_nothing",
+    ),
+    (
+        "export skips its lock",
+        "lagfluid/export/__init__.py",
+        '    with hold_outputs(path.parent, "export", what="run"):',
+        "    if True:  # planted",
+        "tests/test_run_lock.py::test_every_task_that_writes_takes_its_lock",
+    ),
+    (
+        "a killed run's lock taken over without a word",
+        "lagfluid/locks.py",
+        "    if left:\n        log.warning(",
+        "    if False:\n        log.warning(",
+        "tests/test_run_lock.py::test_a_lock_left_by_a_killed_run_is_taken_over_and_logged",
+    ),
+    (
+        "a held MPS reference lock waits without a log line",
+        "lagfluid/locks.py",
+        '        log.info("waiting for %s: %s holds its lock", what, _holder(path))',
+        "        pass  # planted",
+        "tests/test_run_lock.py::test_an_evaluation_waiting_for_a_held_reference_says_for_what_and_whom",
+    ),
+    (
+        "a run without a rollout publishes over the earlier run's files",
+        "lagfluid/outputs.py",
+        "    if not part_path(out_dir / names[0]).exists():",
+        "    if False:",
+        "tests/test_run_lock.py::test_a_run_that_wrote_no_rollout_leaves_the_earlier_files_alone",
+    ),
+    (
+        "a float64 run stores float32 positions",
+        "lagfluid/simulate.py",
+        "            dtype=stored_dtype(state),",
+        "            dtype=np.float32,",
+        "tests/test_store.py::test_a_float64_run_far_from_the_origin_stores_its_exact_positions",
+    ),
+    (
+        "evaluate stores a float64 model rollout as float32",
+        "lagfluid/evaluate/model_run.py",
+        "        dtype=stored_dtype(state),",
+        '        dtype="float32",',
+        "tests/test_store.py::test_a_float64_run_far_from_the_origin_stores_its_exact_positions",
+    ),
+    (
+        "Ctrl-C before the first periodic checkpoint saves none",
+        "lagfluid/simulate.py",
+        "            checkpoint.save_latest()",
+        "            pass  # planted",
+        "tests/test_simulate_resume.py::test_ctrl_c_before_the_first_periodic_checkpoint_saves_one_and_resumes",
+    ),
 ]
 
 

@@ -28,6 +28,7 @@ LAYERS: dict[str, tuple[str, ...]] = {
         "lagfluid.config",  # a run's setup from its config, shared by the tasks
         "lagfluid.memory",  # the entry points' allocator setting (stdlib only)
         "lagfluid.outputs",  # a run's output files, replaced together
+        "lagfluid.locks",  # the locks on what a run writes, and their Hydra callback
         "lagfluid.simulate",
         "lagfluid.simulate.*",
         "lagfluid.simulate_resume",  # task=simulate's resume=true checkpoints

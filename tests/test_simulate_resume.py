@@ -96,6 +96,9 @@ def test_resume_refuses_other_settings_and_a_folder_without_a_checkpoint(tmp_pat
             simulate(_compose("steps=6", out))
     with pytest.raises(RolloutError, match=r"other settings \(dt: None -> 0.001"):
         simulate(_compose("steps=6", "dt=0.001", "resume=true", out))
+    # frames on other steps would not continue the file: write_every is a setting of the run, not free
+    with pytest.raises(RolloutError, match=r"other settings \(write_every: 1 -> 2\); repeat its command"):
+        simulate(_compose("steps=6", "write_every=2", "resume=true", out))
     with pytest.raises(RolloutError, match="at step 4, past steps=3"):
         simulate(_compose("steps=3", "resume=true", out))
     # the refusals touched nothing: the stopped run still resumes, and may run longer than asked first
@@ -122,3 +125,56 @@ def test_kill_9_then_resume_gives_the_uninterrupted_run(tmp_path):
     subprocess.run([*command, "resume=true", f"out_dir={killed}"], cwd=REPO, env=env, check=True)
     subprocess.run([*command, f"out_dir={tmp_path / 'whole'}"], cwd=REPO, env=env, check=True)
     _assert_same_run(tmp_path / "whole", killed)
+
+
+def _compose_late_checkpoint(*overrides: str):
+    """A run whose first periodic checkpoint would come after an hour: only a stop saves one."""
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        overrides = ["experiment=debug", "checkpoint_every_s=3600", *overrides]
+        return compose(config_name="config", overrides=overrides)
+
+
+@pytest.mark.parametrize(
+    "overrides",
+    [["model=mps", "write_every=3"], ["model=gns"]],  # GNS: its velocity history is saved at the stop too
+    ids=lambda o: " ".join(o),
+)
+def test_ctrl_c_before_the_first_periodic_checkpoint_saves_one_and_resumes(tmp_path, monkeypatch, overrides):
+    steps, stopped = ["steps=8"], tmp_path / "stopped"
+    simulate(_compose_late_checkpoint(*overrides, *steps, f"out_dir={tmp_path / 'whole'}"))
+    with monkeypatch.context() as patch:
+        _stopped_at(patch, 5, KeyboardInterrupt)
+        with pytest.raises(KeyboardInterrupt):
+            simulate(_compose_late_checkpoint(*overrides, *steps, f"out_dir={stopped}"))
+    assert (stopped / CHECKPOINT).is_file()  # saved at the stop: no periodic save came before it
+    simulate(_compose_late_checkpoint(*overrides, *steps, "resume=true", f"out_dir={stopped}"))
+    _assert_same_run(tmp_path / "whole", stopped)
+
+
+def _stored_frames(part: Path) -> int:
+    """Frames in a running writer's part file (0 while it cannot be read)."""
+    try:
+        with h5py.File(part, "r", locking=False) as f:
+            return int(f["00000/time"].shape[0])
+    except (OSError, KeyError):
+        return 0
+
+
+def test_sigint_after_the_first_frames_then_resume_gives_the_uninterrupted_run(tmp_path):
+    """A real Ctrl-C (SIGINT) to a run at the default checkpoint_every_s: it saves a checkpoint, stopping."""
+    command = [sys.executable, "-m", "lagfluid.run", "experiment=debug", "steps=15", "threads=1"]
+    stopped = tmp_path / "stopped"
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    proc = subprocess.Popen([*command, f"out_dir={stopped}"], cwd=REPO, env=env, stderr=subprocess.DEVNULL)
+    part = stopped / "rollout.part.h5.part"
+    deadline = time.monotonic() + 300
+    while _stored_frames(part) < 3 and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.01)
+    proc.send_signal(signal.SIGINT)
+    assert proc.wait(timeout=300) != 0, "the run ended before it could be interrupted"
+    assert (stopped / CHECKPOINT).is_file()
+    metrics = json.loads((stopped / "metrics.json").read_text())
+    assert not metrics["complete"] and 2 <= metrics["steps"] < 15
+    simulate(_compose_late_checkpoint("steps=15", "threads=1", "resume=true", f"out_dir={stopped}"))
+    simulate(_compose_late_checkpoint("steps=15", "threads=1", f"out_dir={tmp_path / 'whole'}"))
+    _assert_same_run(tmp_path / "whole", stopped)

@@ -4,8 +4,8 @@ Layout of ``rollout.h5`` (``format="lagfluid"``, ``format_version=1`` on the roo
 
     /00000                      one group per trajectory
         time               (T,)       float64  seconds; frame 0 is the initial state
-        position           (T, Nf, 3) float32  fluid particles
-        velocity           (T, Nf, 3) float32
+        position           (T, Nf, 3) float32  fluid particles; these and boundary_position are float64
+        velocity           (T, Nf, 3) float32  for a float64 run (stored as computed; readers take either)
         pressure           (T, Nf)    float32
         boundary_position  (Nb, 3)    float32  static boundary particles, stored once
         boundary_type      (Nb,)      int8     2 wall, 3 dummy
@@ -47,6 +47,11 @@ def _attr_value(value: Any) -> Any:
     return json.dumps(value)
 
 
+def stored_dtype(state: Any) -> np.dtype:
+    """How the frames of a run in ``state``'s dtype are stored: float64 for float64, else float32."""
+    return np.dtype(np.float64 if state.pos.element_size() == 8 else np.float32)
+
+
 class TrajectoryWriter:
     """Append frames of one trajectory to an HDF5 file.
 
@@ -57,6 +62,8 @@ class TrajectoryWriter:
         boundary_type: (Nb,) boundary particle types.
         attrs: group attributes (physical and solver parameters, provenance).
         group: trajectory group name.
+        dtype: how positions, velocities, pressures and boundary positions are stored: float32, or float64
+            for a float64 run (float32 would round a grid 1e6 m from the origin to 6 cm steps).
     """
 
     def __init__(
@@ -67,7 +74,11 @@ class TrajectoryWriter:
         boundary_type: np.ndarray,
         attrs: dict[str, Any],
         group: str = "00000",
+        dtype: Any = np.float32,
     ) -> None:
+        dtype = np.dtype(dtype)
+        if dtype not in (np.float32, np.float64):
+            raise ValueError(f"trajectories are stored as float32 or float64, not {dtype}")
         self.path = Path(path)
         self.tmp_path = self.path.with_name(self.path.name + ".part")
         self.path.parent.mkdir(parents=True, exist_ok=True)
@@ -88,11 +99,14 @@ class TrajectoryWriter:
         self.frame_arrays = {}
         for name, shape in (("position", (n_fluid, 3)), ("velocity", (n_fluid, 3)), ("pressure", (n_fluid,))):
             self.frame_arrays[name] = self.group.create_dataset(
-                name, (0, *shape), maxshape=(None, *shape), dtype="f4", chunks=(1, nf, *shape[1:]), **compress
+                name,
+                (0, *shape),
+                maxshape=(None, *shape),
+                dtype=dtype,
+                chunks=(1, nf, *shape[1:]),
+                **compress,
             )
-        self.group.create_dataset(
-            "boundary_position", data=np.asarray(boundary_position, np.float32), **compress
-        )
+        self.group.create_dataset("boundary_position", data=np.asarray(boundary_position, dtype), **compress)
         self.group.create_dataset("boundary_type", data=np.asarray(boundary_type, np.int8))
         self.frames = 0
 

@@ -17,7 +17,7 @@ from typing import Any
 from omegaconf import DictConfig
 
 from lagfluid.config import run_attributes, run_guard
-from lagfluid.data.store import TrajectoryWriter
+from lagfluid.data.store import TrajectoryWriter, stored_dtype
 from lagfluid.errors import RolloutError
 from lagfluid.metrics import normalized_mae
 from lagfluid.models.simulator import Simulator
@@ -95,6 +95,7 @@ def run_model(
         state.pos[nf:].cpu().numpy(),
         state.ptype[nf:].cpu().numpy(),
         run_attributes(state, cfg, simulator.name, str(cfg.scene.name), write_every),
+        dtype=stored_dtype(state),
     )
     constants = mps_constants(state, settings)
     neighbors = mps_neighbor_list(state, settings)  # one list for every frame: it rebuilds only as needed

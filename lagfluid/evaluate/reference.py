@@ -2,11 +2,9 @@
 
 from __future__ import annotations
 
-import contextlib
 import hashlib
 import json
 import logging
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -20,6 +18,7 @@ from lagfluid.config import scene_params
 from lagfluid.data.store import TrajectoryFileError, open_lagfluid_file
 from lagfluid.errors import ConfigError, RolloutError
 from lagfluid.evaluate.options import EvaluateOptions
+from lagfluid.locks import lock_path, wait_for_lock
 from lagfluid.physics.stages import solver_identity
 from lagfluid.simulate import simulate
 
@@ -100,22 +99,6 @@ def cached_reference_problem(path: Path, key: dict[str, Any], frames: int) -> st
     return None
 
 
-@contextlib.contextmanager
-def _locked(path: Path) -> Iterator[None]:
-    """Hold an exclusive lock on ``path`` (POSIX; elsewhere no lock)."""
-    try:
-        import fcntl
-    except ImportError:  # pragma: no cover - not POSIX
-        yield
-        return
-    with path.open("w") as handle:
-        fcntl.flock(handle, fcntl.LOCK_EX)
-        try:
-            yield
-        finally:
-            fcntl.flock(handle, fcntl.LOCK_UN)
-
-
 def reference_settings(cfg: DictConfig, overrides: dict[str, Any]) -> DictConfig:
     """The run's config with ``overrides`` (``evaluate.reference``) merged over it: what the reference uses.
 
@@ -158,7 +141,9 @@ def reference_rollout(cfg: DictConfig, options: EvaluateOptions) -> tuple[Path, 
     folder.mkdir(parents=True, exist_ok=True)
     path = folder / "rollout.h5"
     frames = expected_frames(int(cfg.steps), int(cfg.write_every))
-    with _locked(folder / ".lock"):
+    # One evaluation computes a reference, the others with its key wait for it (the log says for whom); not
+    # the folder's own lock, which the reference's task=simulate takes.
+    with wait_for_lock(lock_path(folder, "reference"), "evaluate", f"the MPS reference in {folder}"):
         if options.reuse_reference:
             problem = cached_reference_problem(path, key, frames) if path.exists() else "none cached"
             if problem is None:

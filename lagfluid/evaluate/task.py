@@ -30,6 +30,7 @@ from lagfluid.evaluate.model_run import run_model
 from lagfluid.evaluate.options import EvaluateOptions
 from lagfluid.evaluate.reference import key_hash, reference_rollout
 from lagfluid.export.animation import side_by_side
+from lagfluid.locks import hold_outputs
 from lagfluid.models.simulator import Simulator
 from lagfluid.outputs import begin, part_path, publish, write_json
 from lagfluid.physics.stages import SolverSettings
@@ -98,24 +99,25 @@ def evaluate(cfg: DictConfig) -> dict[str, Any]:
     history = initial_history(cfg, simulator)
     simulator.reset(state, history)  # per-scene set-up can fail too: before the reference and out_dir
     options = replace(options, reference=reference_overrides(cfg, options, simulator, state))
-    reference_path, reused, key = reference_rollout(cfg, options)
     out_dir = Path(cfg.out_dir)
-    begin(out_dir, OUTPUTS)
-    model_path = part_path(out_dir / "rollout.h5")
-    run = run_model(cfg, simulator, state, model_path, options.one_step, reset=False)
-    reference = {
-        "path": str(reference_path),
-        "reused": reused,
-        "overrides": options.reference,
-        "key_hash": key_hash(key),
-        "key": key,
-    }
-    try:
-        metrics = _compare_and_write(cfg, options, simulator, state, run, model_path, reference)
-        metrics["wall_time_total_s"] = time.perf_counter() - start
-        write_json(part_path(out_dir / "metrics.json"), metrics)
-    finally:  # whatever failed above, the folder holds one run's files
-        publish(out_dir, OUTPUTS, run["complete"])
+    with hold_outputs(out_dir, "evaluate"):  # before the reference: a second run is refused at once
+        reference_path, reused, key = reference_rollout(cfg, options)
+        begin(out_dir, OUTPUTS)
+        model_path = part_path(out_dir / "rollout.h5")
+        run = run_model(cfg, simulator, state, model_path, options.one_step, reset=False)
+        reference = {
+            "path": str(reference_path),
+            "reused": reused,
+            "overrides": options.reference,
+            "key_hash": key_hash(key),
+            "key": key,
+        }
+        try:
+            metrics = _compare_and_write(cfg, options, simulator, state, run, model_path, reference)
+            metrics["wall_time_total_s"] = time.perf_counter() - start
+            write_json(part_path(out_dir / "metrics.json"), metrics)
+        finally:  # whatever failed above, the folder holds one run's files
+            publish(out_dir, OUTPUTS, run["complete"])
     summary = metrics["summary"]
     log.info(
         "wrote %s: %s vs MPS, %d frames, Chamfer mean %.3f mm, density error mean %.4f (MPS %.4f)",

@@ -81,6 +81,10 @@ def export_task(cfg: DictConfig) -> Path:
 
     if cfg.get("run") is None:
         raise ConfigError("task=export needs run=DIR (a run folder with rollout.h5) or run=FILE.h5")
-    out = export_rollout(rollout_path(str(cfg.run)), check_format(cfg.format), cfg)
+    from lagfluid.locks import hold_outputs
+
+    path, fmt = rollout_path(str(cfg.run)), check_format(cfg.format)
+    with hold_outputs(path.parent, "export", what="run"):  # it writes beside the rollout, as its run did
+        out = export_rollout(path, fmt, cfg)
     logging.getLogger(__name__).info("wrote %s", out)
     return out

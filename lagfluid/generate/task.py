@@ -20,6 +20,7 @@ from lagfluid.errors import LagfluidError
 from lagfluid.generate.metadata import write_metadata
 from lagfluid.generate.scene import generate_scene, scene_done
 from lagfluid.generate.spec import DataSpec
+from lagfluid.locks import hold_outputs
 
 log = logging.getLogger(__name__)
 
@@ -52,6 +53,16 @@ def generate(cfg: DictConfig) -> dict[str, Any] | None:
         spec.sample_every,
         spec.out_dir,
     )
+    scenes = scene_path(spec.out_dir, 0).parent
+    # each scene is locked, not the folder: a multirun's jobs (data.scene_index) make theirs side by side
+    with hold_outputs(scenes, "generate", [scene_path(spec.out_dir, k).stem for k in todo], "data.out_dir"):
+        return _generate_scenes(cfg, spec, todo, start)
+
+
+def _generate_scenes(
+    cfg: DictConfig, spec: DataSpec, todo: Sequence[int], start: float
+) -> dict[str, Any] | None:
+    """:func:`generate` once its scenes ``todo`` are locked: they, then ``metadata.json`` if all are there."""
     failed = []
     for k in todo:
         path = scene_path(spec.out_dir, k)
