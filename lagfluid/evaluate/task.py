@@ -23,7 +23,7 @@ from lagfluid.config import (
     run_device,
     scene_params,
 )
-from lagfluid.errors import ConfigError
+from lagfluid.errors import ConfigError, RolloutError
 from lagfluid.evaluate.compare import compare, summaries
 from lagfluid.evaluate.figures import plot_errors, plot_pressure_slice
 from lagfluid.evaluate.model_run import run_model
@@ -125,6 +125,24 @@ def evaluate(cfg: DictConfig) -> dict[str, Any]:
         summary["density_error"]["model"]["mean"],
         summary["density_error"]["reference"]["mean"],
     )
+    return metrics
+
+
+def evaluate_task(cfg: DictConfig) -> dict[str, Any]:
+    """``task=evaluate`` from the command line: :func:`evaluate`, then a model the guard stopped is an error.
+
+    :func:`evaluate` returns a stopped model's metrics (the benchmark tables record it as a row); the command
+    exits non-zero for it, as ``task=simulate`` does for a guard stop, naming the stop in one line.
+
+    Raises:
+        RolloutError: the model was stopped by the rollout guard (its frames were evaluated and written).
+    """
+    metrics = evaluate(cfg)
+    if not metrics["complete"]:
+        raise RolloutError(
+            f"model {metrics['model']} stopped after {metrics['steps']} of {metrics['steps_requested']} "
+            f"steps: {metrics['stop_reason']} (the frames before the stop are evaluated in {cfg.out_dir})"
+        )
     return metrics
 
 
