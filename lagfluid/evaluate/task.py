@@ -18,6 +18,7 @@ from lagfluid.config import (
     at_simulator_time_step,
     build_initial_state,
     build_simulator,
+    check_run_memory,
     git_commit,
     initial_history,
     run_device,
@@ -30,6 +31,7 @@ from lagfluid.evaluate.model_run import run_model
 from lagfluid.evaluate.options import EvaluateOptions
 from lagfluid.evaluate.reference import key_hash, reference_rollout
 from lagfluid.export.animation import side_by_side
+from lagfluid.memory import exact_step_bytes
 from lagfluid.models.simulator import Simulator
 from lagfluid.outputs import begin, part_path, publish, write_json
 from lagfluid.physics.stages import SolverSettings
@@ -95,6 +97,8 @@ def evaluate(cfg: DictConfig) -> dict[str, Any]:
     simulator = build_simulator(cfg)
     state = at_simulator_time_step(state, simulator, cfg)
     history = initial_history(cfg, simulator)
+    # before the first neighbour search; the one-step errors keep an exact MPS neighbour list beside the model
+    check_run_memory(cfg, state, simulator, also=exact_step_bytes(state) if options.one_step else 0.0)
     simulator.reset(state, history)  # per-scene set-up can fail too: before the reference and out_dir
     options = replace(options, reference=reference_overrides(cfg, options, simulator, state))
     reference_path, reused, key = reference_rollout(cfg, options)
