@@ -191,10 +191,11 @@ def check_run_memory(cfg: DictConfig, state: ParticleState, simulator: Simulator
 
     if state.device.type != "cpu":
         return
+    files = cfg.scene.get("path") or cfg.scene.get("container")  # a file scene's file, a mesh scene's tank
     check_memory(
         memory_needed(simulator, state) + also,
         f"a rollout of model {simulator.name} ({state.n_fluid:,} fluid of {state.num_particles:,} particles)",
-        f"scene '{cfg.scene.name}'",
+        f"scene '{cfg.scene.name}'" + (f" ({files})" if files else ""),
         shrink_advice(cfg.scene.keys()),
     )
 
