@@ -37,9 +37,9 @@ from .network import GNSNet
 from .trainable import NAME
 
 SHIPPED = Path(__file__).resolve().parent / "weights"
+"""The shipped weights (``gns.pt``) and their model card."""
 BYTES_PER_EDGE = 1300.0
 """Memory per graph edge of a step (latent edge features of every block), rounded up from the measurement."""
-"""The shipped weights (``gns.pt``) and their model card."""
 
 
 class GNSSimulator:
@@ -124,8 +124,8 @@ class GNSSimulator:
 
         Measured (peak RSS of ``task=simulate``, 8 steps so that the network steps after the warm start, dams
         of 4,000 to 40,000 fluid particles, ``threads=1``): 940-1,210 B per pair within the connectivity
-        radius above the warm start's own peak (``lagfluid/memory.py``). The warm start is counted whatever
-        the history: it is the larger part only on a scene built from scratch.
+        radius above the peak of MPS alone on the same dam (``lagfluid/memory.py``). The warm start is
+        counted whatever the history (a ``scene=trajectory`` start has none): an estimate on the safe side.
         """
         radius = self.net.radius * state.params.l0
         if self.warm_start is None:
