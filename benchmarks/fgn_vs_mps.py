@@ -70,7 +70,9 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--models", nargs="+", default=["mps", "fgn", "hybrid"])
     ap.add_argument("--weights", default=None, help="FGN checkpoint directory (default: shipped weights)")
     ap.add_argument(
-        "--weights-original", default=None, help="the authors' arrays (default: the copy shipped in the package)"
+        "--weights-original",
+        default=None,
+        help="the authors' arrays (default: the copy shipped in the package)",
     )
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--threads", type=int, default=None)

@@ -169,6 +169,37 @@ def build_initial_state(cfg: DictConfig) -> ParticleState:
     return state.to(device=run_device(cfg))
 
 
+def check_run_memory(cfg: DictConfig, state: ParticleState, simulator: Simulator, also: float = 0.0) -> None:
+    """Refuse a CPU run whose estimated peak memory exceeds the memory available now, in one line.
+
+    Called once the particles are built, before the simulator's first neighbour search (its ``reset``): a
+    scene too large is refused naming the estimate, the memory available and the scene keys to shrink,
+    instead of being killed by the OS (and other jobs with it) later. The estimate is the simulator's
+    (:func:`lagfluid.memory.memory_needed`); a CUDA run is not estimated (calibrated on the CPU only).
+
+    Args:
+        cfg: the run's config (the scene's name and keys, for the message).
+        state: the initial state.
+        simulator: the run's simulator.
+        also: bytes the task needs besides the rollout (``task=evaluate``'s exact one-step errors).
+
+    Raises:
+        SceneError: the estimate exceeds the available memory.
+    """
+    from lagfluid.memory import memory_needed
+    from lagfluid.scenes.validation import check_memory, shrink_advice
+
+    if state.device.type != "cpu":
+        return
+    files = cfg.scene.get("path") or cfg.scene.get("container")  # a file scene's file, a mesh scene's tank
+    check_memory(
+        memory_needed(simulator, state) + also,
+        f"a rollout of model {simulator.name} ({state.n_fluid:,} fluid of {state.num_particles:,} particles)",
+        f"scene '{cfg.scene.name}'" + (f" ({files})" if files else ""),
+        shrink_advice(cfg.scene.keys()),
+    )
+
+
 def build_simulator(cfg: DictConfig) -> Simulator:
     """The simulator named by ``cfg.model.name``, checked against the Simulator contract."""
     name = str(cfg.model.name)

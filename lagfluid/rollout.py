@@ -202,6 +202,8 @@ def rollout(
             if write and on_frame is not None:
                 on_frame(state)
             bar.update(1)
+            if k == 1:  # the first step compiled kernels (a fresh install) and built lists: not in the ETA
+                bar.restart_clock()
             if k % 10 == 0:
                 bar.set_postfix(ms_per_step=f"{1e3 * median(record['step_seconds'][-10:]):.0f}")
     except BaseException as err:

@@ -44,15 +44,33 @@ def available_models() -> list[str]:
 CONFIG_GROUPS = ("scene", "data", "solver", "train", "experiment")  # besides model: conf/<group>/*.yaml
 
 
+def help_config_groups() -> str:
+    """The ``--help`` lines ``group: option, ...`` of every config group, plugins' options included.
+
+    Hydra's own list (``$APP_CONFIG_GROUPS``) is made before the plugins' config folders join its search path
+    (``hydra.searchpath`` applies only when composing), so it missed ``model=gns`` and ``train=gns_cpu``;
+    ``conf/config.yaml``'s ``hydra.help.template`` shows this list instead (resolver
+    ``${lagfluid.config_groups:}``).
+    """
+    from lagfluid.registry import trainable_models
+
+    lines = [f"{group}: {', '.join(_group_names(group))}" for group in ("data", "experiment")]
+    lines.append(f"model: {', '.join(available_models())}")
+    lines.append(f"  (task=train trains: {', '.join(trainable_models())})")
+    lines += [f"{group}: {', '.join(_group_names(group))}" for group in ("scene", "solver", "train")]
+    return "\n".join(lines)
+
+
 def check_command_line(argv: Sequence[str]) -> str | None:
-    """Return a one-line error for an unknown ``task=`` or config group value, else None.
+    """Return a one-line error for an unknown ``task=``, config group value or key, else None.
 
     The groups: ``model=`` (configs and registered plugins), ``scene=``, ``data=``, ``solver=``, ``train=``,
     ``experiment=`` (core and plugin config folders).
 
     ``stage=`` is checked by ``task=train`` against the model's trainables (from the registry).
-    A ``+key=value`` that appends a new top-level key is refused too: nothing reads it (Hydra's own hint after
-    a typo such as ``stepz=3`` is ``+stepz=3``, which would then be silently ignored).
+    A misspelt top-level key (``stepz=3``) gets the closest valid keys instead of Hydra's advice to append it
+    (``+stepz=3``, which struct mode then refuses); a ``+key=value`` that appends a new top-level key is
+    refused the same way: nothing reads it.
     """
     known = {
         "model": available_models,
@@ -61,8 +79,8 @@ def check_command_line(argv: Sequence[str]) -> str | None:
     }
     for arg in argv:
         key, sep, value = arg.partition("=")
-        if arg.startswith("+") and not arg.startswith("++") and sep:
-            unknown = _unknown_appended_key(key[1:])
+        if sep and not key.startswith(("++", "~", "-")):  # not a forced add, a deletion, a flag
+            unknown = _unknown_key(key.removeprefix("+"), appended=key.startswith("+"))
             if unknown:
                 return unknown
         key = key.lstrip("+~")
@@ -95,20 +113,37 @@ def check_out_dir_argument(argv: Sequence[str]) -> str | None:
     return None
 
 
-def _unknown_appended_key(key: str) -> str | None:
-    """The one-line error for ``+key=...`` when ``key`` is a new top-level key (not a group), else None."""
+def _unknown_key(key: str, appended: bool) -> str | None:
+    """The one-line error for ``key=...`` when ``key`` is not in ``conf/config.yaml``, else None.
+
+    Checked: top-level keys, and keys inside its own sections (``evaluate.horizons``, ``animation.fps``).
+    Keys inside a config group (``scene.fluid_size``) depend on the option chosen and are left to Hydra, as
+    are ``hydra.*`` and ``key@package`` forms. ``appended``: the key came as ``+key=...``.
+    """
     import difflib
 
     from omegaconf import OmegaConf
 
-    if "." in key or "/" in key or key in ("model", "task", *CONFIG_GROUPS):
-        return None  # a nested key (a plugin trainable's train.iterations.<name>) or a config group
-    top = sorted(k for k in OmegaConf.load(CONF_DIR / "config.yaml") if k not in ("defaults", "hydra"))
-    close = difflib.get_close_matches(key, top, n=1)
-    hint = f"did you mean {close[0]}=...? " if close else ""
-    return (
-        f"lagfluid: unknown key '{key}' (+{key}=... adds a key nothing reads); {hint}keys: {', '.join(top)}"
-    )
+    if "@" in key or "/" in key:
+        return None
+    parts = key.split(".")
+    if parts[0] in ("hydra", "model", *CONFIG_GROUPS):
+        return None  # Hydra's own settings, or a config group and the keys of the option chosen
+    node = OmegaConf.to_container(OmegaConf.load(CONF_DIR / "config.yaml"))  # interpolations unresolved
+    for depth, part in enumerate(parts):
+        if not isinstance(node, dict):
+            return None  # below a value that is not a section (evaluate.reference is null): Hydra decides
+        names = sorted(k for k in node if depth or k not in ("defaults", "hydra"))
+        names += [] if depth else ["model", *CONFIG_GROUPS]
+        if part not in names:
+            prefix = ".".join([*parts[:depth], ""])
+            close = difflib.get_close_matches(part, names, n=3, cutoff=0.6)
+            near = f"closest: {', '.join(prefix + c for c in close)}; " if close else ""
+            where = f"keys of {prefix[:-1]}" if depth else "top-level keys"
+            added = f" (+{key}=... adds a key nothing reads)" if appended else ""
+            return f"lagfluid: unknown key '{key}'{added}; {near}{where}: {', '.join(sorted(names))}"
+        node = node[part]
+    return None
 
 
 def _register_plugin_configs() -> None:
@@ -144,9 +179,9 @@ def dispatch(cfg: DictConfig) -> None:
 
         train(cfg)
     elif cfg.task == "evaluate":
-        from lagfluid.evaluate import evaluate
+        from lagfluid.evaluate.task import evaluate_task
 
-        evaluate(cfg)
+        evaluate_task(cfg)
     elif cfg.task == "export":
         from lagfluid.export import export_task
 
@@ -159,6 +194,23 @@ def _raise_terminated(signum: int, frame: object) -> None:
     raise Terminated(f"stopped by {signal.Signals(signum).name} (a timeout, the scheduler or docker stop)")
 
 
+def stop_hint(cfg: DictConfig) -> str:
+    """What a stopped run leaves to continue from: ``task=simulate`` with its ``resume.pt``, else ''."""
+    from lagfluid.simulate_resume import CHECKPOINT
+
+    if cfg.get("task") != "simulate" or not (Path(str(cfg.out_dir)) / CHECKPOINT).is_file():
+        return ""
+    return f"; add resume=true to the same command to continue it from {Path(str(cfg.out_dir)) / CHECKPOINT}"
+
+
+def stop_line(err: KeyboardInterrupt) -> str:
+    """The one line printed for Ctrl-C or SIGTERM (:class:`Terminated`), with the run's resume hint."""
+    hint = getattr(err, "hint", "")
+    if isinstance(err, Terminated):
+        return f"lagfluid: {err}{hint}"
+    return f"lagfluid: interrupted (Ctrl-C){hint}"
+
+
 @hydra.main(version_base="1.3", config_path="conf", config_name="config")
 def _hydra_main(cfg: DictConfig) -> None:
     signal.signal(signal.SIGTERM, _raise_terminated)  # stop like Ctrl-C: outputs kept, the reason written
@@ -169,6 +221,10 @@ def _hydra_main(cfg: DictConfig) -> None:
         log.debug("failed", exc_info=True)
         log.error("%s", err)
         sys.exit(1)
+    except KeyboardInterrupt as err:  # one line from main(), naming what continues the run
+        log.debug("stopped", exc_info=True)
+        err.hint = stop_hint(cfg)  # type: ignore[attr-defined]
+        raise
 
 
 def limit_openmp(argv: Sequence[str]) -> None:
@@ -192,22 +248,27 @@ def main() -> None:
     limit_openmp(sys.argv[1:])  # first: before anything imports torch
     keep_freed_memory()  # before the first large allocation
     try:
-        problem = check_command_line(sys.argv[1:])
+        _main(sys.argv[1:])
+    except KeyboardInterrupt as err:  # Ctrl-C (SIGINT) or SIGTERM: one line, the shell's exit status
+        sys.stderr.write(stop_line(err) + "\n")
+        sys.exit(128 + (signal.SIGTERM if isinstance(err, Terminated) else signal.SIGINT))
+
+
+def _main(argv: Sequence[str]) -> None:
+    """Check the command line, then run Hydra (which reads ``sys.argv`` itself)."""
+    try:
+        problem = check_command_line(argv)
         _register_plugin_configs()
     except LagfluidError as err:  # a broken plugin (its configs, its entry point): one line, not a traceback
         problem = f"lagfluid: {err}"
     if problem:
         sys.stderr.write(problem + "\n")  # before Hydra has set up logging: one plain line
         sys.exit(2)
-    problem = check_out_dir_argument(sys.argv[1:])
+    problem = check_out_dir_argument(argv)
     if problem:
         sys.stderr.write(problem + "\n")
         sys.exit(1)
-    try:
-        _hydra_main()
-    except Terminated as err:
-        sys.stderr.write(f"lagfluid: {err}\n")
-        sys.exit(128 + signal.SIGTERM)
+    _hydra_main()
 
 
 if __name__ == "__main__":

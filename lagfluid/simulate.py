@@ -33,6 +33,7 @@ from lagfluid.config import (
     at_simulator_time_step,
     build_initial_state,
     build_simulator,
+    check_run_memory,
     initial_history,
     run_attributes,
     run_guard,
@@ -197,6 +198,7 @@ def simulate(cfg: DictConfig) -> dict[str, Any]:
     history = initial_history(cfg, simulator)
     settings = SolverSettings.from_config(cfg.solver)
     guard = run_guard(cfg, simulator)
+    check_run_memory(cfg, state, simulator)  # before the first neighbour search
     simulator.reset(state, history)  # per-scene set-up can fail too (a plugin's checks, the history)
     out_dir = Path(cfg.out_dir)
     with hold_outputs(out_dir, "simulate"):  # a second run into out_dir is refused, before it touches it

@@ -428,6 +428,26 @@ def train_one(cfg: DictConfig, trainable: Trainable, out_dir: Path) -> dict[str,
     return {"kind": kind, "step": step, "train_seconds": elapsed, "checkpoint": str(ckpt_path)}
 
 
+def check_export_to(export_to: str | os.PathLike) -> None:
+    """Refuse an ``export_to`` that cannot become the folder the trained networks are copied into.
+
+    Raises:
+        ConfigError: it is a file, its parent folder does not exist (a relative path run from elsewhere:
+            not a stray ``lagfluid/weights`` here), or it cannot be written.
+    """
+    dest = Path(str(export_to))
+    if dest.exists() and not dest.is_dir():
+        raise ConfigError(f"export_to={export_to} is a file, not a folder for the trained networks")
+    if not dest.parent.is_dir():
+        raise ConfigError(
+            f"export_to={export_to}: its parent folder {dest.parent.resolve()} does not exist; run from "
+            "the repository root or give an absolute path"
+        )
+    folder = dest if dest.is_dir() else dest.parent
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise ConfigError(f"export_to={export_to} cannot be written: {folder.resolve()} is not writable")
+
+
 def train(cfg: DictConfig) -> list[dict[str, Any]]:
     """``task=train``: train ``cfg.stage`` (one trainable of ``cfg.model``, or ``all`` of them in turn).
 
@@ -452,6 +472,8 @@ def train(cfg: DictConfig) -> list[dict[str, Any]]:
         )
     if with_rounds:  # a command that cannot remake the dataset's scenes fails now, not after the training
         check_same_scenes(cfg)
+    if cfg.get("export_to") and distributed.is_main():  # before the training, not after it
+        check_export_to(cfg.export_to)
     apply_threads(cfg)
     out_dir = Path(str(cfg.out_dir))
     # each trainable's files are locked, not the folder: a sweep over stage trains them side by side in it;
@@ -478,12 +500,8 @@ def _train_in(
         sources = {name: last_round for name in names}
     export_to = cfg.get("export_to")
     if export_to and distributed.is_main():
+        check_export_to(export_to)  # again: the folder may have changed during the training
         dest = Path(str(export_to))
-        if not dest.parent.is_dir():  # a relative path run from elsewhere: not a stray lagfluid/weights here
-            raise ConfigError(
-                f"export_to={export_to}: its parent folder {dest.parent.resolve()} does not exist; run from "
-                "the repository root or give an absolute path"
-            )
         dest.mkdir(exist_ok=True)
         for name, source in sources.items():  # only this run's trainables: out_dir may hold others
             meta = read_checkpoint(Path(source) / f"{name}.pt").get("meta") or {}

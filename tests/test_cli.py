@@ -73,14 +73,77 @@ def test_an_appended_unknown_top_level_key_is_refused_with_a_hint():
     msg = check_command_line(["+stepz=3"])
     assert (
         msg is not None
-        and msg.startswith("lagfluid: unknown key 'stepz'")
-        and "did you mean steps=...?" in msg
+        and msg.startswith("lagfluid: unknown key 'stepz' (+stepz=... adds a key nothing reads)")
+        and "closest: steps, stage;" in msg
     )
     assert check_command_line(["+train.iterations.line=60", "++stepz=3", "+experiment=debug"]) is None
     out = subprocess.run(
         [sys.executable, "-m", "lagfluid.run", "+stepz=3"], capture_output=True, text=True, timeout=120
     )
     assert out.returncode == 2 and out.stderr.strip().splitlines() == [msg]
+
+
+def test_a_misspelt_key_names_the_closest_keys_not_hydras_plus_advice():
+    top = (
+        "animation, checkpoint_every_s, data, device, dt, dtype, evaluate, experiment, export, export_to, "
+        "format, model, num_scenes, out_dir, progress, resume, run, scene, seed, solver, stage, steps, task, "
+        "threads, train, write_every"
+    )
+    msg = check_command_line(["steps=3", "stepz=3"])
+    assert msg == f"lagfluid: unknown key 'stepz'; closest: steps, stage; top-level keys: {top}"
+    assert check_command_line(["evaluate.horizon=[1]"]) == (
+        "lagfluid: unknown key 'evaluate.horizon'; closest: evaluate.horizons; keys of evaluate: figures, "
+        "horizons, one_step, reference, reference_dir, reuse_reference, slice"
+    )
+    # keys Hydra owns or that depend on the option chosen are left to it; so are deletions and forced adds
+    for fine in (
+        "scene.fluid_size=[4,4,4]",
+        "hydra.run.dir=x",
+        "evaluate.reference.dt=0.004",
+        "~seed",
+        "++x=1",
+        "--config-dir=x",
+        "hydra/launcher=submitit_slurm",
+    ):
+        assert check_command_line([fine]) is None, fine
+    out = subprocess.run(
+        [sys.executable, "-m", "lagfluid.run", "stepz=3"], capture_output=True, text=True, timeout=120
+    )
+    assert out.returncode == 2 and out.stderr.strip().splitlines() == [msg]
+    assert "+stepz" not in out.stdout + out.stderr
+
+
+def test_help_lists_every_model_and_train_profile_plugins_included(monkeypatch):
+    out = subprocess.run(
+        [sys.executable, "-m", "lagfluid.run", "--help"], capture_output=True, text=True, timeout=120
+    )
+    assert out.returncode == 0
+    lines = {
+        line.split(": ")[0]: line.split(": ")[1].split(", ")
+        for line in out.stdout.splitlines()
+        if ": " in line
+    }
+    assert set(lines["model"]) >= {"mps", "fgn", "hybrid", "gns", "cconv", "cconv_original"}
+    assert set(lines["train"]) >= {"cpu", "paper", "gns_cpu", "gns_paper", "cconv_cpu", "cconv_paper"}
+    assert {"table2_gns", "table3_dam_cconv"} <= set(lines["experiment"])
+    # a plugin simulator without a config file is listed too
+    from importlib import metadata
+
+    import lagfluid.registry as registry
+    from lagfluid.run import help_config_groups
+
+    plugin = metadata.EntryPoint(
+        name="plugin_sim", value="lagfluid.models.mps_simulator:build_mps", group=registry.ENTRY_POINT_GROUP
+    )
+    real = metadata.entry_points
+    monkeypatch.setattr(
+        registry.metadata,
+        "entry_points",
+        lambda **kw: metadata.EntryPoints([plugin]) if kw.get("group") == plugin.group else real(**kw),
+    )
+    assert "plugin_sim" in next(
+        line for line in help_config_groups().splitlines() if line.startswith("model:")
+    )
 
 
 def test_an_out_dir_that_cannot_be_a_folder_is_refused_before_hydra_makes_it(tmp_path):
@@ -113,7 +176,7 @@ def test_registry_unknown_name_lists_available():
 
 def test_struct_mode_rejects_typos():
     with pytest.raises((ConfigCompositionException, ConfigAttributeError)):
-        _compose("stepz=3")
+        _compose("stepz=3")  # the Python API (compose) too; the command line says it first, in one line
 
 
 @pytest.fixture(scope="module")
@@ -267,13 +330,110 @@ def test_sigterm_stops_a_rollout_like_ctrl_c_keeping_its_outputs_and_reason(tmp_
     proc.send_signal(signal.SIGTERM)
     _, err = proc.communicate(timeout=120)
     assert proc.returncode == 128 + signal.SIGTERM
+    # one line; "; add resume=true ..." follows when the run left a checkpoint to continue from
     assert (
-        err.strip().splitlines()[-1]
-        == "lagfluid: stopped by SIGTERM (a timeout, the scheduler or docker stop)"
+        err.strip()
+        .splitlines()[-1]
+        .startswith("lagfluid: stopped by SIGTERM (a timeout, the scheduler or docker stop)")
     )
+    assert "Traceback" not in err
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["complete"] is False and "SIGTERM" in metrics["stop_reason"] and metrics["steps"] < 100000
     assert (out / "preview.png").is_file() and (out / "rollout.h5").is_file()
+
+
+def test_ctrl_c_is_one_line_naming_how_to_continue_and_exit_status_130(tmp_path):
+    import signal
+    import time
+
+    out = tmp_path / "run"
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "lagfluid.run",
+            "experiment=debug",
+            "steps=100000",
+            "checkpoint_every_s=0",  # a checkpoint at every stored frame: there is one to continue from
+            f"out_dir={out}",
+            "threads=1",
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    deadline = time.monotonic() + 120
+    while not (out / "resume.pt").is_file() and time.monotonic() < deadline:
+        time.sleep(0.2)
+    proc.send_signal(signal.SIGINT)  # what Ctrl-C sends
+    stdout, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130  # 128 + SIGINT, as a shell reports an interrupted command
+    assert err.strip().splitlines() == [
+        f"lagfluid: interrupted (Ctrl-C); add resume=true to the same command to continue it from "
+        f"{out / 'resume.pt'}"
+    ]
+    assert "Traceback" not in stdout + err
+    assert json.loads((out / "metrics.json").read_text())["complete"] is False  # the outputs are kept
+
+
+def test_ctrl_c_outside_simulate_is_one_line_without_a_resume_hint():
+    from omegaconf import OmegaConf
+
+    from lagfluid.run import stop_hint, stop_line
+
+    assert stop_line(KeyboardInterrupt()) == "lagfluid: interrupted (Ctrl-C)"
+    assert stop_hint(OmegaConf.create({"task": "train", "out_dir": "."})) == ""
+
+
+def test_a_guard_stop_is_an_error_under_simulate_and_evaluate_alike(tmp_path, monkeypatch):
+    """Both tasks exit 1 with one line naming the stop (``_hydra_main`` turns a LagfluidError into that)."""
+    from lagfluid import registry
+    from lagfluid.errors import RolloutError
+
+    with pytest.raises(RolloutError, match=r"step \d+: Courant number"):
+        dispatch(_compose("experiment=debug", "dt=0.05", "steps=10", f"out_dir={tmp_path / 'simulate'}"))
+
+    class Exploding:
+        """MPS whose fluid velocity turns NaN at step 2: the guard stops the model, not its reference."""
+
+        def __init__(self, cfg):
+            from lagfluid.models.mps_simulator import build_mps
+
+            self.inner = build_mps(cfg)
+            self.name, self.dt, self.history_length, self.max_courant = "exploding", None, 0, None
+            self.parameters, self.last_fields, self.last_info, self.last_timings = 0, None, {}, {}
+
+        def reset(self, state, history=()):
+            self.inner.reset(state, history)
+
+        def step(self, state, *, record=False):
+            new = self.inner.step(state)
+            if new.step >= 2:
+                new.vel[0] = float("nan")
+            return new
+
+        def attributes(self):
+            return {}
+
+    monkeypatch.setitem(registry._REGISTERED, "exploding", Exploding)
+    out = tmp_path / "evaluate"
+    cfg = _compose(
+        "task=evaluate",
+        "model.name=exploding",
+        "scene=dam_small",
+        "steps=4",
+        "evaluate.figures=false",
+        f"evaluate.reference_dir={tmp_path / 'reference'}",
+        f"out_dir={out}",
+    )
+    with pytest.raises(
+        RolloutError,
+        match=rf"model exploding stopped after 1 of 4 steps: step 2: fluid particle 0 has a non-finite "
+        rf"velocity .* \(the frames before the stop are evaluated in {re.escape(str(out))}\)",
+    ):
+        dispatch(cfg)
+    metrics = json.loads((out / "metrics.json").read_text())  # evaluated and written first
+    assert metrics["complete"] is False and metrics["frames"]["step"] == [0, 1]
 
 
 def test_cli_guard_stop_is_one_clear_line(tmp_path):

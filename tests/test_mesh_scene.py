@@ -103,6 +103,45 @@ def test_bad_meshes_are_named(tmp_path, tank_and_block):
         build_scene("mesh", fluid=block)
 
 
+def test_meshes_too_large_for_memory_point_to_scene_scale_not_to_keys_mesh_lacks(
+    tmp_path, tank_and_block, monkeypatch
+):
+    from lagfluid.scenes import validation
+
+    monkeypatch.setattr(validation, "available_memory", lambda: 16 << 30)  # a 16 GiB machine
+    # a 500 x 300 x 400 mm tank read as metres: under the 1 km refusal, a lattice of 1.2e12 sites
+    tank_mm = _box(tmp_path / "tank_mm.stl", [0, 0, 0], [500, 300, 400])
+    block_mm = _box(tmp_path / "block_mm.stl", [0, 0, 0], [200, 200, 250])
+    with pytest.raises(SceneError) as refused:
+        build_scene("mesh", container=tank_mm, fluid=block_mm)
+    assert str(refused.value) == (
+        f"scene 'mesh' ({tank_mm}): the lattice of its 500 m container at l0 = 0.05 m needs ~2.87e+04 GiB, "
+        "but 16 GiB of memory are available; meshes in millimetres need scene.scale=0.001 (mesh units -> m); "
+        "otherwise make scene.scale or the meshes smaller, or scene.params.l0 larger"
+    )
+    assert build_scene("mesh", container=tank_mm, fluid=block_mm, scale=0.001).n_fluid == 4 * 4 * 5
+    # the rollout's own estimate (after the particles are built) gives the same advice
+    tank, block = tank_and_block
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        cfg = compose(
+            config_name="config",
+            overrides=[
+                "scene=mesh",
+                f"scene.container={tank}",
+                f"scene.fluid={block}",
+                f"out_dir={tmp_path}/r",
+            ],
+        )
+    monkeypatch.setattr(validation, "available_memory", lambda: 50 << 20)
+    with pytest.raises(
+        SceneError,
+        match=r"a rollout of model mps \(640 fluid of .* particles\) needs ~.*"
+        r"GiB, but 0.0488 GiB .*; meshes in millimetres need scene\.scale=0\.001",
+    ) as refused:
+        simulate(cfg)
+    assert "fluid_size" not in str(refused.value) and "tank_size" not in str(refused.value)
+
+
 @pytest.mark.parametrize("model", ["mps", "fgn"])
 def test_a_mesh_scene_rolls_out(tank_and_block, tmp_path, model):
     tank, block = tank_and_block

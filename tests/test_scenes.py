@@ -503,8 +503,12 @@ def test_a_scene_too_large_for_memory_is_refused_with_the_estimate_before_it_is_
     monkeypatch.setattr(validation, "available_memory", lambda: 2**30)  # 1 GiB left
     build_scene("dam")  # 31k particles: ~0.25 GiB
     big = {"fluid_size": [100, 100, 100], "tank_size": [120, 120], "wall_height": 110}
+    # built, then refused before its checks' neighbour queries (the rollout's estimate: tests/test_memory.py)
     with pytest.raises(
-        SceneError, match=r"a rollout of its ~1,\d{3},\d{3} particles needs ~\d+\.?\d* GiB, but 1 GiB"
+        SceneError,
+        match=r"scene 'dam': checking its 1,\d{3},\d{3} particles needs ~\d+\.?\d* GiB, but 1 GiB of "
+        r"memory are available; make scene\.fluid_size, scene\.tank_size, scene\.wall_height smaller or "
+        r"scene\.params\.l0 larger$",
     ):
         build_scene("dam", **big)
     monkeypatch.setattr(validation, "available_memory", lambda: None)  # unknown: never refused for it

@@ -208,3 +208,26 @@ def test_export_to_under_a_missing_folder_is_refused_naming_it(tiny_data, tmp_pa
     with pytest.raises(ConfigError, match=r"export_to=.*its parent folder .* does not exist"):
         train(cfg)
     assert not bad.parent.exists()
+
+
+def test_export_to_an_existing_file_is_refused_before_the_training(tiny_data, tmp_path, monkeypatch):
+    monkeypatch.setitem(registry._REGISTERED_TRAINABLES, "fgn", lambda cfg: {"line": LinearFit("line")})
+    a_file = tmp_path / "weights"
+    a_file.write_text("mine")
+    cfg = _compose(
+        "task=train",
+        "model=fgn",
+        "data=tiny",
+        f"data.out_dir={tiny_data}",
+        f"out_dir={tmp_path / 'run'}",
+        f"export_to={a_file}",
+        "progress=false",
+        "+train.iterations.line=3",
+        "+train.batch_size.line=2",
+    )
+    with pytest.raises(
+        ConfigError, match=rf"^export_to={a_file} is a file, not a folder for the trained networks$"
+    ):
+        train(cfg)
+    assert not (tmp_path / "run" / "line.pt").exists()  # refused before the training, not after it
+    assert a_file.read_text() == "mine"

@@ -21,6 +21,7 @@ import torch
 from torch import Tensor
 
 from lagfluid.errors import RolloutError
+from lagfluid.memory import rollout_bytes
 from lagfluid.models.checkpoint import CheckpointError, MissingWeightsError, read_checkpoint
 from lagfluid.models.training_range import RangeWarner, checkpoint_range
 from lagfluid.physics.stages import StageTimer
@@ -28,6 +29,9 @@ from lagfluid.state import ParticleState
 
 from .boundary import surface_points
 from .network import CConvNet
+
+BYTES_PER_PAIR = 900.0
+"""Memory per pair within the filter radius of a step (:meth:`CConvSimulator.memory_needed`)."""
 
 __all__ = [
     "DLF_SURFACE_WEIGHT",
@@ -108,6 +112,15 @@ class CConvSimulator:
     def last_timings(self) -> dict[str, float]:
         """Seconds of the last step: ``neighbors`` (the pair geometry) and ``network``."""
         return self._timer.read()
+
+    def memory_needed(self, state: ParticleState) -> float:
+        """Bytes a rollout from ``state`` needs: :func:`lagfluid.memory.rollout_bytes` at the filter radius.
+
+        Measured (peak RSS of ``task=simulate``, 3 steps, dams of 4,000 to 80,000 fluid particles,
+        ``threads=1``): 530-910 B per pair of a fluid particle within the filter radius.
+        """
+        radius = self.net.filter_radius / (2 * self.net.particle_radius) * state.params.l0  # l0 = 2 radii
+        return rollout_bytes(state, radius, BYTES_PER_PAIR)
 
     def reset(self, state: ParticleState, history: Sequence[ParticleState] = ()) -> None:
         """The scene's boundary surface, in the network's axes (``history`` is not needed).

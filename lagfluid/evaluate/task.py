@@ -18,12 +18,13 @@ from lagfluid.config import (
     at_simulator_time_step,
     build_initial_state,
     build_simulator,
+    check_run_memory,
     git_commit,
     initial_history,
     run_device,
     scene_params,
 )
-from lagfluid.errors import ConfigError
+from lagfluid.errors import ConfigError, RolloutError
 from lagfluid.evaluate.compare import compare, summaries
 from lagfluid.evaluate.figures import plot_errors, plot_pressure_slice
 from lagfluid.evaluate.model_run import run_model
@@ -31,6 +32,7 @@ from lagfluid.evaluate.options import EvaluateOptions
 from lagfluid.evaluate.reference import key_hash, reference_rollout
 from lagfluid.export.animation import side_by_side
 from lagfluid.locks import hold_outputs
+from lagfluid.memory import exact_step_bytes
 from lagfluid.models.simulator import Simulator
 from lagfluid.outputs import begin, part_path, publish, write_json
 from lagfluid.physics.stages import SolverSettings
@@ -97,6 +99,8 @@ def evaluate(cfg: DictConfig) -> dict[str, Any]:
     simulator = build_simulator(cfg)
     state = at_simulator_time_step(state, simulator, cfg)
     history = initial_history(cfg, simulator)
+    # before the first neighbour search; the one-step errors keep an exact MPS neighbour list beside the model
+    check_run_memory(cfg, state, simulator, also=exact_step_bytes(state) if options.one_step else 0.0)
     simulator.reset(state, history)  # per-scene set-up can fail too: before the reference and out_dir
     options = replace(options, reference=reference_overrides(cfg, options, simulator, state))
     out_dir = Path(cfg.out_dir)
@@ -128,6 +132,24 @@ def evaluate(cfg: DictConfig) -> dict[str, Any]:
         summary["density_error"]["model"]["mean"],
         summary["density_error"]["reference"]["mean"],
     )
+    return metrics
+
+
+def evaluate_task(cfg: DictConfig) -> dict[str, Any]:
+    """``task=evaluate`` from the command line: :func:`evaluate`, then a model the guard stopped is an error.
+
+    :func:`evaluate` returns a stopped model's metrics (the benchmark tables record it as a row); the command
+    exits non-zero for it, as ``task=simulate`` does for a guard stop, naming the stop in one line.
+
+    Raises:
+        RolloutError: the model was stopped by the rollout guard (its frames were evaluated and written).
+    """
+    metrics = evaluate(cfg)
+    if not metrics["complete"]:
+        raise RolloutError(
+            f"model {metrics['model']} stopped after {metrics['steps']} of {metrics['steps_requested']} "
+            f"steps: {metrics['stop_reason']} (the frames before the stop are evaluated in {cfg.out_dir})"
+        )
     return metrics
 
 

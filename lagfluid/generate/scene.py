@@ -12,7 +12,7 @@ from typing import Any
 
 from omegaconf import DictConfig
 
-from lagfluid.config import run_attributes
+from lagfluid.config import check_run_memory, run_attributes
 from lagfluid.data.layout import (
     GROUP,
     SampleWriter,
@@ -78,6 +78,7 @@ def generate_scene(cfg: DictConfig, spec: DataSpec, index: int) -> Path:
         raise SceneError(f"scene {index} (seed {seed}): {err}") from err
     settings = SolverSettings.from_config(cfg.solver)
     sim = build_policy(cfg) if spec.policy is not None else build_mps(cfg)
+    check_run_memory(cfg, state, sim)  # before the first neighbour search
     sim.reset(state)
     nf = state.n_fluid
     attrs = {

@@ -38,7 +38,7 @@ import torch
 
 from lagfluid.scenes.validation import (
     MIN_DISTANCE,
-    RUN_BYTES_PER_PARTICLE,
+    SHRINK,
     as_vector,
     check_choice,
     check_memory,
@@ -521,6 +521,7 @@ class Scene:
         params: SceneParams | None = None,
         dtype: torch.dtype = torch.float32,
         min_distance: float = MIN_DISTANCE,
+        advice: str = SHRINK,
     ) -> ParticleState:
         """Discretise the scene into particles at spacing ``params.l0``.
 
@@ -528,6 +529,7 @@ class Scene:
             params: physical parameters (``l0`` sets the spacing); defaults to :class:`SceneParams`.
             dtype: floating dtype of the state.
             min_distance: closest allowed particle distance, l0 (see :func:`check_particles`).
+            advice: what a scene too large for memory should shrink, naming its keys (:func:`shrink_advice`).
 
         Returns:
             a validated state with N = F + B particles sorted fluid, wall, dummy: ``pos`` (N, 3) m,
@@ -539,10 +541,8 @@ class Scene:
         source = f"scene '{self.name}'"
         # estimated before any array is made: a too-large scene is refused, not killed by the OS later
         fluid_points = sum(int(np.prod(block.size)) for block in self.fluid)
-        box, shell = self.boundary_points()
-        check_memory(_BUILD_BYTES_PER_POINT * (fluid_points + box), "building it", source)
-        n = fluid_points + shell
-        check_memory(RUN_BYTES_PER_PARTICLE * n, f"a rollout of its ~{n:,} particles", source)
+        box, _ = self.boundary_points()
+        check_memory(_BUILD_BYTES_PER_POINT * (fluid_points + box), "building it", source, advice)
         fluid_xyz, fluid_vel = self.fluid_sites()
         bnd_xyz, bnd_type = self.boundary_sites()
         pos = np.concatenate([fluid_xyz, bnd_xyz]).astype(np.float64) * l0
@@ -550,7 +550,7 @@ class Scene:
         ptype = np.concatenate([np.full(len(fluid_xyz), int(ParticleType.FLUID), dtype=np.int64), bnd_type])
         bounds = self.bounds(fluid_xyz)
         bounds = None if bounds is None else bounds * l0
-        state = validated_state(pos, vel, ptype, params, bounds, dtype, min_distance, f"scene '{self.name}'")
+        state = validated_state(pos, vel, ptype, params, bounds, dtype, min_distance, source, advice)
         n_wall = int((bnd_type == ParticleType.WALL).sum())
         log.info(
             "scene '%s'%s: %d fluid, %d wall, %d dummy particles (built in %.2f s)",

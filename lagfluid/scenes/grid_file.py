@@ -21,7 +21,7 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
-from lagfluid.scenes.validation import MIN_DISTANCE, validated_state
+from lagfluid.scenes.validation import FILE_ADVICE, MIN_DISTANCE, validated_state
 from lagfluid.state import ParticleState, ParticleType, SceneError, SceneParams
 
 __all__ = ["from_file", "grid_bounds", "load_grid", "read_grid", "save_grid"]
@@ -164,7 +164,7 @@ def load_grid(
     params = params or SceneParams()
     pos, vel, ptype = read_grid(path)
     bounds = grid_bounds(pos, ptype) if np.isfinite(pos).all() else None
-    state = validated_state(pos, vel, ptype, params, bounds, dtype, min_distance, str(path))
+    state = validated_state(pos, vel, ptype, params, bounds, dtype, min_distance, str(path), FILE_ADVICE)
     fluid = pos[ptype == ParticleType.FLUID]
     if len(fluid) > 1:
         # The solver's reference densities (solver.n0_from=lattice, the default) assume spacing l0, so a

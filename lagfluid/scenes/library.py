@@ -30,7 +30,7 @@ import numpy as np
 import torch
 
 from lagfluid.scenes.geometry import Box, Container, Cylinder, FluidBlock, Scene, Shape, Sphere, Wedge
-from lagfluid.scenes.validation import as_vector, check_positive_int
+from lagfluid.scenes.validation import as_vector, check_positive_int, shrink_advice
 from lagfluid.state import ParticleState, SceneError, SceneParams
 
 __all__ = [
@@ -70,7 +70,7 @@ def build_layout(
         raise SceneError(
             f"unknown option(s) {', '.join(unknown)} for scene '{name}'; available: {', '.join(accepted)}"
         )
-    return layout(**options).build(params, dtype)
+    return layout(**options).build(params, dtype, advice=shrink_advice(accepted))
 
 
 def sink_depth(n_wall: int, n_dummy: int) -> int:

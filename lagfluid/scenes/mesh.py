@@ -30,10 +30,11 @@ import numpy as np
 import torch
 
 from lagfluid.scenes.library import RUNUP_FACTOR
-from lagfluid.scenes.validation import check_memory, validated_state
+from lagfluid.scenes.validation import check_memory, shrink_advice, validated_state
 from lagfluid.state import ParticleState, ParticleType, SceneError, SceneParams
 
 LATTICE_BYTES_PER_SITE = 64  # the build's arrays per lattice site (positions, distances, masks)
+ADVICE = shrink_advice(("container", "fluid", "obstacles", "scale"))  # too large: what to shrink, by its keys
 
 
 def load_mesh(path: str | Path, scale: float, what: str):
@@ -116,7 +117,12 @@ def mesh_scene(
     lower = np.floor(tank.bounds[0] / l0) - shell - 1
     upper = np.ceil(tank.bounds[1] / l0) + shell + 1
     counts = (upper - lower + 1).astype(int)
-    check_memory(float(np.prod(counts)) * LATTICE_BYTES_PER_SITE, "the mesh scene's lattice", str(container))
+    check_memory(
+        float(np.prod(counts)) * LATTICE_BYTES_PER_SITE,
+        f"the lattice of its {size:.4g} m container at l0 = {l0} m",
+        f"scene 'mesh' ({container})",
+        ADVICE,
+    )
     axes = [np.arange(lower[i], upper[i] + 1) * l0 for i in range(3)]
     sites = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
     d = _signed_distance(tank, sites)
@@ -162,4 +168,6 @@ def mesh_scene(
     vel[: int(in_fluid.sum())] = np.asarray(velocity, dtype=np.float64)
     bounds = np.stack([tank.bounds[0], tank.bounds[1]]).astype(np.float64)
     bounds[1, 2] = max(bounds[1, 2], top) + (top - floor if open_top else 0.0)
-    return validated_state(pos, vel, ptype, params, bounds, dtype, source=f"scene 'mesh' ({container})")
+    return validated_state(
+        pos, vel, ptype, params, bounds, dtype, source=f"scene 'mesh' ({container})", advice=ADVICE
+    )

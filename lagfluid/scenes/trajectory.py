@@ -36,7 +36,7 @@ import torch
 from lagfluid.data.store import TrajectoryFileError, open_lagfluid_file
 from lagfluid.errors import ConfigError
 from lagfluid.scenes.grid_file import grid_bounds
-from lagfluid.scenes.validation import validated_state
+from lagfluid.scenes.validation import FILE_ADVICE, validated_state
 from lagfluid.state import ParticleState, ParticleType, SceneError, SceneParams
 
 __all__ = [
@@ -158,7 +158,9 @@ def trajectory_states(
     for time, position, velocity, pressure, index in rows:
         pos = np.concatenate([np.asarray(position, np.float64), boundary_pos])
         vel = np.concatenate([np.asarray(velocity, np.float64), np.zeros_like(boundary_pos)])
-        state = validated_state(pos, vel, ptype, params, bounds, dtype, min_distance, f"{path} frame {index}")
+        state = validated_state(
+            pos, vel, ptype, params, bounds, dtype, min_distance, f"{path} frame {index}", FILE_ADVICE
+        )
         # from_arrays sorts stably by type: fluid rows keep the file's order and come first
         state.pressure[:nf] = torch.as_tensor(np.asarray(pressure), dtype=dtype)
         state.time = time

@@ -8,7 +8,7 @@ problem is reported before a simulator ever sees the state.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 
 import numpy as np
 import torch
@@ -17,14 +17,15 @@ from scipy.spatial import cKDTree
 from lagfluid.state import ParticleState, ParticleType, SceneError, SceneParams
 
 __all__ = [
+    "FILE_ADVICE",
     "MIN_DISTANCE",
-    "RUN_BYTES_PER_PARTICLE",
     "as_vector",
     "available_memory",
     "check_choice",
     "check_memory",
     "check_particles",
     "check_positive_int",
+    "shrink_advice",
 ]
 
 MIN_DISTANCE = 0.5
@@ -237,11 +238,6 @@ def _check_resolution(
         )
 
 
-RUN_BYTES_PER_PARTICLE = 8_000
-"""Memory a rollout needs per particle (neighbour lists, PPE system, state): peak RSS of 3 MPS steps grew by
-5.3 KB per particle at 149k particles (``dam_large``) and 6.9 KB at 31k (``dam``); 8 KB leaves a margin."""
-
-
 def available_memory() -> int | None:
     """Bytes of memory the system can still give (Linux ``MemAvailable``), or None where unknown."""
     try:
@@ -254,8 +250,52 @@ def available_memory() -> int | None:
     return None
 
 
-def check_memory(need: float, what: str, source: str) -> None:
+CHECK_BYTES_PER_FLUID = 2_000
+CHECK_BYTES_PER_PARTICLE = 100
+"""Memory :func:`check_particles` needs: the 49 nearest neighbours of every fluid particle with their kernel
+weights (per fluid particle) and its k-d trees (per particle). Measured (peak RSS of the checks alone, dams of
+40,000 and 80,000 fluid in 149k and 154k particles): 1.6 KB per fluid particle and under 30 B per particle."""
+
+SHRINK = "make the scene smaller or l0 larger"
+"""What :func:`check_memory` advises where the scene's own keys are not known (the Python API)."""
+
+
+def shrink_advice(options: Iterable[str]) -> str:
+    """What to make smaller to fit memory, naming the keys of the scene in use.
+
+    Args:
+        options: the scene's option names (its config keys, or its builder's parameters).
+    """
+    options = set(options)
+    if "container" in options:  # scene=mesh: the meshes set the size, in their own units
+        return (
+            "meshes in millimetres need scene.scale=0.001 (mesh units -> m); otherwise make scene.scale or "
+            "the meshes smaller, or scene.params.l0 larger"
+        )
+    if "path" in options:  # scene=file, scene=trajectory: the particles are the file's
+        return "start from a file with fewer particles, or use a machine with more memory"
+    keys = [
+        f"scene.{k}"
+        for k in ("scale", "fluid_size", "tank_size", "wall_height", "column_size")
+        if k in options
+    ]
+    return (
+        f"make {', '.join(keys)} smaller or scene.params.l0 larger" if keys else "make scene.params.l0 larger"
+    )
+
+
+FILE_ADVICE = shrink_advice(("path",))
+"""What a file's particles too many for memory should shrink (``scene=file``, ``scene=trajectory``)."""
+
+
+def check_memory(need: float, what: str, source: str, advice: str = SHRINK) -> None:
     """Refuse, naming the estimate, when ``need`` bytes exceed the memory available now.
+
+    Args:
+        need: bytes.
+        what: what needs them ("building it", "a rollout of model mps").
+        source: the scene or file, first in the message.
+        advice: what to shrink, naming the scene's own keys (:func:`shrink_advice`).
 
     Raises:
         SceneError: the estimate is larger than the available memory.
@@ -264,7 +304,7 @@ def check_memory(need: float, what: str, source: str) -> None:
     if have is not None and need > have:
         raise SceneError(
             f"{source}: {what} needs ~{need / 2**30:.3g} GiB, but {have / 2**30:.3g} GiB of memory are "
-            "available; make the scene smaller (fluid_size, tank_size, wall_height) or l0 larger"
+            f"available; {advice}"
         )
 
 
@@ -284,8 +324,11 @@ def validated_state(
     dtype: torch.dtype,
     min_distance: float = MIN_DISTANCE,
     source: str = "scene",
+    advice: str = SHRINK,
 ) -> ParticleState:
     """:func:`check_particles`, then the :class:`ParticleState` of these arrays (sorted by type).
+
+    The checks' neighbour queries are refused first when they would not fit in memory (a huge file).
 
     Args:
         pos: (N, 3) positions, m.
@@ -296,7 +339,15 @@ def validated_state(
         dtype: floating dtype of the state.
         min_distance: closest allowed particle distance, l0.
         source: what the particles came from, for the messages.
+        advice: what a scene too large for memory should shrink (:func:`shrink_advice`).
     """
+    n_fluid = int(np.count_nonzero(np.asarray(ptype) == ParticleType.FLUID))
+    check_memory(
+        CHECK_BYTES_PER_FLUID * n_fluid + CHECK_BYTES_PER_PARTICLE * len(pos),
+        f"checking its {len(pos):,} particles",
+        source,
+        advice,
+    )
     check_particles(pos, vel, ptype, params.l0, bounds, min_distance=min_distance, source=source)
     _check_resolution(pos, bounds, params.l0, dtype, source)
     return ParticleState.from_arrays(
