@@ -83,6 +83,13 @@ class Simulator(Protocol):
     #   rollout_memory() -> dict[str, Tensor]          after a step: what the next step needs
     #   restore_rollout_memory(state, memory) -> None  after reset(state, history): take it back
     # Without them a resumed run calls reset(state, history) with the states before the checkpoint.
+    #
+    # Optional, for exact stages after the step (model.exact_after, lagfluid.models.exact_after):
+    #   amend_last_step(before, after) -> None  the state step(before) returned was replaced by ``after``:
+    #                                           update what the next step reads beyond the state (GNS:
+    #                                           its velocity history); required with rollout_memory
+    #   last_step_learned: bool                 False after a step that is not the model's own (GNS's MPS
+    #                                           warm start): the stages leave it as it is; absent: True
 
 
 _REQUIRED = (
