@@ -291,3 +291,59 @@ def test_an_exact_after_that_is_off_leaves_a_resumes_settings_as_they_were():
     assert "exact_after" not in run_settings(_compose("model=gns"))["model"]
     on = run_settings(_compose("model=gns", "model.exact_after.pressure=true"))["model"]["exact_after"]
     assert on == {"collision": False, "pressure": True, "iterations": 1, "relaxation": 1.0}
+
+
+def _metrics(model: str, complete: bool, steps: int, chamfer: float, options: dict | None = None) -> dict:
+    attrs = {f"exact_after_{k}": v for k, v in (options or {}).items()}
+    density = {"model": {"mean": 0.01}, "reference": {"mean": 0.002}}
+    summary = {"chamfer_mm": {"mean": chamfer, "max": 2 * chamfer}, "density_error": density}
+    return {
+        "model": model,
+        "complete": complete,
+        "steps": steps,
+        "dt": 0.008,
+        "summary": summary,
+        "simulator": attrs,
+    }
+
+
+def test_the_exact_after_benchmark_reports_each_row_and_the_minimum_that_completes():
+    from benchmarks.exact_after import result_row, verdict
+
+    both = {"collision": True, "pressure": True, "iterations": 3, "relaxation": 0.5}
+    plain = result_row(_metrics("gns", False, 29, 14.37), ["python", "-m", "lagfluid.run", "model=gns"])
+    assert plain["rollout"] == "stops at step 30 (0.24 s)" and plain["exact stages after the step"] == "none"
+    assert plain["Chamfer to MPS mean / max (mm)"] == "14.4 / 28.7" and plain["command"].startswith("`python")
+    assert plain["density error mean (MPS)"] == "0.0100 (0.0020)"
+    relaxed = result_row(_metrics("gns + ...", False, 119, 50.0, both), ["x"])
+    assert relaxed["exact stages after the step"] == "exact collision + MPS pressure (K=3, w=0.5)"
+    assert (
+        verdict("gns", [plain, relaxed])
+        == "`gns`: none completes; the furthest is gns + ..., which stops at step 120 (0.96 s)."
+    )
+    done = [
+        result_row(_metrics(f"m{i}", True, 125, c, {"pressure": True}), ["x"])
+        for i, c in ((1, 30.0), (2, 20.0))
+    ]
+    assert verdict("m", [plain, *done]).endswith("closest to MPS: m2 (20.0 / 40.0 mm).")
+
+
+def test_the_tables_list_the_exact_after_rows_under_their_own_labels():
+    from benchmarks.tables.config import compose_config
+    from benchmarks.tables.simulators import simulator
+
+    for key, base, label in (
+        ("gns_exact", "gns", "GNS (CPU size) + exact collision + MPS pressure"),
+        ("cconv_original_exact", "cconv_original", "CConv, DLF's weights + exact collision + MPS pressure"),
+    ):
+        sim = simulator(key)
+        assert (sim.label, sim.model) == (label, base) and "not the plain" in sim.note
+        assert sim.rows == (f"table2_{key}", f"table3_dam_{key}", f"table3_waterfall_{key}")
+        plain = compose_config([f"experiment=table3_dam_{base}"])
+        cfg = compose_config([f"experiment=table3_dam_{key}"])
+        assert (cfg.steps, cfg.write_every, cfg.scene.name) == (
+            plain.steps,
+            plain.write_every,
+            plain.scene.name,
+        )
+        assert build_simulator(cfg).name == f"{base} + exact collision + MPS pressure"
