@@ -335,6 +335,7 @@ def test_the_tables_list_the_exact_after_rows_under_their_own_labels():
     for key, base, label in (
         ("gns_exact", "gns", "GNS (CPU size) + exact collision + MPS pressure"),
         ("cconv_original_exact", "cconv_original", "CConv, DLF's weights + exact collision + MPS pressure"),
+        ("cconv_exact", "cconv", "CConv (CPU training) + exact collision + MPS pressure"),
     ):
         sim = simulator(key)
         assert (sim.label, sim.model) == (label, base) and "not the plain" in sim.note
