@@ -89,13 +89,18 @@ def result_row(metrics: dict[str, Any], cmd: list[str]) -> dict[str, Any]:
     }
 
 
+def _stages(row: dict[str, Any]) -> str:
+    stages = row["exact stages after the step"]
+    return "no exact stage" if stages == "none" else stages
+
+
 def verdict(model: str, rows: list[dict[str, Any]]) -> str:
     """One sentence: which variants of ``model`` complete (the cheapest first), or the furthest one."""
     done = [r for r in rows if r["rollout"] == "complete"]
     if done:
         best = min(done, key=lambda r: float(r["Chamfer to MPS mean / max (mm)"].split(" / ")[0]))
         return (
-            f"`{model}`: complete with {', '.join(r['exact stages after the step'] for r in done)}; "
+            f"`{model}`: complete with {'; '.join(_stages(r) for r in done)}; "
             f"closest to MPS: {best['simulator']} ({best['Chamfer to MPS mean / max (mm)']} mm)."
         )
 
@@ -139,7 +144,9 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--reference-dir", default="runs/reference", help="the MPS references' cache")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument(
-        "--note", default="", help="a paragraph added under the verdicts (where the runs were made)"
+        "--note-file",
+        default=None,
+        help="a markdown file added under the verdicts (where the runs were made)",
     )
     ap.add_argument("--results", default=str(RESULTS))
     args = ap.parse_args(argv)
@@ -160,7 +167,7 @@ def main(argv: list[str] | None = None) -> None:
         "of the symmetric mean nearest-neighbour distance to MPS's fluid; density error: mean |n/n0 - 1| "
         "over the interior fluid particles.\n\n"
         + "\n".join(f"- {v}" for v in verdicts)
-        + (f"\n\n{args.note}" if args.note else "")
+        + (f"\n\n{Path(args.note_file).read_text().strip()}" if args.note_file else "")
     )
     prov = provenance("benchmarks.exact_after", load, runs=str(args.runs_dir))
     print(write_results(Path(args.results), "exact_after", rows, intro, prov))

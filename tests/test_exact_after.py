@@ -325,7 +325,11 @@ def test_the_exact_after_benchmark_reports_each_row_and_the_minimum_that_complet
         result_row(_metrics(f"m{i}", True, 125, c, {"pressure": True}), ["x"])
         for i, c in ((1, 30.0), (2, 20.0))
     ]
-    assert verdict("m", [plain, *done]).endswith("closest to MPS: m2 (20.0 / 40.0 mm).")
+    assert verdict("m", [plain, *done]) == (
+        "`m`: complete with MPS pressure; MPS pressure; closest to MPS: m2 (20.0 / 40.0 mm)."
+    )
+    alone = result_row(_metrics("m", True, 125, 10.0), ["x"])
+    assert verdict("m", [alone, *done]).startswith("`m`: complete with no exact stage; MPS pressure; MPS")
 
 
 def test_the_tables_list_the_exact_after_rows_under_their_own_labels():
