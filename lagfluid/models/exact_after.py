@@ -16,13 +16,18 @@ positions by a few SPH pressure iterations. The stages are the solver's own (:cl
 
 **The time step.** The stages use the ``dt`` the model steps by (GNS 8 ms, CConv 2 ms, DeepLagrangian-
 Fluids' CConv 20 ms). The PPE's source is ``-gamma_div div(v)/dt + gamma_n (n - n0)/(dt^2 n0)``, so its
-pressure scales as ``1/dt^2`` and the correction's displacement ``a_p dt^2`` does not depend on ``dt``: one
-projection removes the same fraction of the density error (``solver.source_density``, 0.2) and of the
-divergence (0.8) whatever ``dt``, and is as stable at 20 ms as at 2 ms. What a longer step costs is reach:
-a step that moves a particle more than the collision radius (0.92 l0) or through a wall's layers before the
-stages run is not undone by them (they see the particles where the network left them), and at 20 ms the
-density error relaxes over fewer steps per second, so more is left per step (``iterations`` K > 1 with a
-relaxation ``w`` < 1 repeat the projection within the step).
+pressure scales as ``1/dt^2``: the correction's displacement ``a_p dt^2`` does not depend on ``dt`` (one
+projection removes the same share of a density error whatever ``dt``), the velocity it leaves,
+``a_p dt``, is that displacement over ``dt``. What a longer step costs is reach: the stages see the
+particles where the network left them, so a step that carries a particle past the collision radius
+(0.92 l0) or into a wall's layers before they run is not undone, and a pair left very close can get the
+minimum-pressure gradient's ``1/r^2`` push in one piece (the collision rule, run first, slows approaching
+pairs). Measured on the dam at 20 ms: the projection alone after DeepLagrangianFluids' CConv threw a
+particle out of the tank at step 19; with the collision rule before it the run completes
+(``benchmarks/results/exact_after.md``). ``iterations`` K > 1 repeat
+the stages at the corrected state; with MPS's source, whose divergence term sees the velocity the last
+projection left, a second projection in the same step finds little or nothing to do (on a compressed
+block at rest its pressure clamps to 0), so a relaxation ``w`` < 1 mostly scales the one correction.
 
 **The model's memory.** A model that carries state between steps beyond the particles (GNS's history of
 velocities ``(x_t - x_{t-1}) / dt``) is told of the correction by ``amend_last_step(before, after)``, so
