@@ -20,6 +20,7 @@ from omegaconf import DictConfig, OmegaConf
 
 import lagfluid
 from lagfluid.errors import ConfigError, SceneError
+from lagfluid.models.exact_after import with_exact_after
 from lagfluid.models.simulator import Simulator, check_simulator
 from lagfluid.registry import check_scene_name, get_simulator_factory
 from lagfluid.rollout import Guard
@@ -201,9 +202,13 @@ def check_run_memory(cfg: DictConfig, state: ParticleState, simulator: Simulator
 
 
 def build_simulator(cfg: DictConfig) -> Simulator:
-    """The simulator named by ``cfg.model.name``, checked against the Simulator contract."""
+    """The simulator named by ``cfg.model.name``, checked against the Simulator contract.
+
+    With ``cfg.model.exact_after`` on, it is followed by exact MPS stages after each step
+    (:mod:`lagfluid.models.exact_after`), whatever the model.
+    """
     name = str(cfg.model.name)
-    return check_simulator(get_simulator_factory(name)(cfg), name)
+    return with_exact_after(check_simulator(get_simulator_factory(name)(cfg), name), cfg)
 
 
 def at_simulator_time_step(state: ParticleState, simulator: Simulator, cfg: DictConfig) -> ParticleState:

@@ -84,6 +84,9 @@ def check_command_line(argv: Sequence[str]) -> str | None:
             if unknown:
                 return unknown
         key = key.lstrip("+~")
+        unknown = _unknown_exact_after_key(key)
+        if unknown:
+            return unknown
         if not sep or key not in known or "," in value:  # multirun sweeps are checked per job
             continue
         names = known[key]()
@@ -111,6 +114,24 @@ def check_out_dir_argument(argv: Sequence[str]) -> str | None:
         if not os.access(ancestor, os.W_OK | os.X_OK):
             return f"lagfluid: out_dir={value} cannot be made or written: {ancestor} is not writable"
     return None
+
+
+def _unknown_exact_after_key(key: str) -> str | None:
+    """The one-line error for ``model.exact_after.<key>`` that the node does not have, else None.
+
+    Hydra's own (struct mode) is a multi-line message, or with ``+`` a key nothing would read; the keys
+    are ``conf/config.yaml``'s (:mod:`lagfluid.models.exact_after` reads them).
+    """
+    prefix = "model.exact_after."
+    if not key.startswith(prefix):
+        return None
+    from omegaconf import OmegaConf
+
+    keys = list(OmegaConf.load(CONF_DIR / "config.yaml").model.exact_after)
+    name = key.removeprefix(prefix)
+    if name in keys:
+        return None
+    return f"lagfluid: model.exact_after has no key '{name}'; keys: {', '.join(keys)}"
 
 
 def _unknown_key(key: str, appended: bool) -> str | None:

@@ -34,6 +34,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from lagfluid.errors import RolloutError
+from lagfluid.models.exact_after import ExactAfterOptions
 from lagfluid.state import ParticleState
 
 CHECKPOINT = "resume.pt"
@@ -43,11 +44,18 @@ _STATE_FIELDS = ("pos", "vel", "pressure")
 
 
 def run_settings(cfg: DictConfig) -> dict[str, Any]:
-    """The resolved config of a run without :data:`FREE_KEYS`: what a resumed run must repeat."""
+    """The resolved config of a run without :data:`FREE_KEYS`: what a resumed run must repeat.
+
+    ``model.exact_after`` is left out while no stage is on: a run checkpointed before the key existed
+    computes the same and resumes.
+    """
     settings = OmegaConf.to_container(cfg, resolve=True)
     assert isinstance(settings, dict)
     for key in FREE_KEYS:
         settings.pop(key, None)
+    model = settings.get("model")
+    if isinstance(model, dict) and not ExactAfterOptions.from_config(model.get("exact_after")).enabled:
+        model.pop("exact_after", None)
     return settings
 
 

@@ -427,6 +427,56 @@ PLANTS = [
         "    if False:",
         "tests/test_progress.py::test_a_cold_kernel_cache_is_announced_once_before_compiling",
     ),
+    # exact stages after an end-to-end step (model.exact_after, issue 35)
+    (
+        "exact_after: GNS's velocity history keeps the uncorrected step",
+        "baselines/gns/simulator.py",
+        "        self._velocities = torch.cat([self._velocities[:, :-1], displacement.unsqueeze(1)], dim=1)",
+        "        pass  # planted",
+        "tests/test_exact_after.py::test_gns_history_after_a_corrected_step_is_the_corrected_displacement",
+    ),
+    (
+        "exact_after: the collision moves velocities but not positions",
+        "lagfluid/physics/stages.py",
+        "            pos[:nf] = integrate.collide(pos[:nf], v_star, v_new, dt)",
+        "            pass  # planted",
+        "tests/test_exact_after.py::test_exact_collision_after_a_step_is_the_collision_rule_applied_directly",
+    ),
+    (
+        "exact_after: the relaxation factor is ignored",
+        "lagfluid/physics/stages.py",
+        "                acc_p = relaxation * acc_p",
+        "                pass  # planted",
+        "tests/test_exact_after.py::test_mps_pressure_after_a_step_lowers_a_compressed_blocks_density_error",
+    ),
+    (
+        "exact_after: the stages also rewrite GNS's MPS warm-start frames",
+        "lagfluid/models/exact_after.py",
+        'self._ran = bool(getattr(self.model, "last_step_learned", True))',
+        "self._ran = True",
+        "tests/test_exact_after.py::test_gns_history_after_a_corrected_step_is_the_corrected_displacement",
+    ),
+    (
+        "exact_after: the run is named as the plain model",
+        "lagfluid/models/exact_after.py",
+        "        self.name = options.label(model.name)",
+        "        self.name = model.name",
+        "tests/test_exact_after.py::test_labels_reach_rollout_and_metrics",
+    ),
+    (
+        "exact_after: a resumed run takes the stages' constants from the checkpoint's state",
+        "lagfluid/models/exact_after.py",
+        "            self.exact.constants = MPSConstants(n0, n0_lap, lam)",
+        "            pass  # planted",
+        "tests/test_exact_after.py::test_a_stopped_gns_with_exact_stages_resumes_bit_for_bit",
+    ),
+    (
+        "exact_after: a relaxation above 1 passes",
+        "lagfluid/models/exact_after.py",
+        "if not (_is_number(w) and 0 < w <= 1):",
+        "if not (_is_number(w) and 0 < w):",
+        "tests/test_exact_after.py::test_a_bad_exact_after_is_one_config_error_naming_it",
+    ),
 ]
 
 

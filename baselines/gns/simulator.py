@@ -78,6 +78,7 @@ class GNSSimulator:
         self._warm_frames = 0
         self._next_step: int | None = None
         self._mps: ParticleState | None = None  # the warm start's own state
+        self.last_step_learned = True  # False after an MPS warm-start frame (exact already)
 
     @property
     def parameters(self) -> int:
@@ -179,6 +180,7 @@ class GNSSimulator:
         nf, dt = state.n_fluid, state.params.dt
         if abs(dt - self.dt) > 1e-9:
             raise RolloutError(f"GNS steps by its training frame spacing {self.dt} s, the state has dt {dt}")
+        self.last_step_learned = not self._warm_frames
         if self._warm_frames:
             new, velocity = self._warm_step(state)
         else:
@@ -200,6 +202,17 @@ class GNSSimulator:
         self._velocities = torch.cat([self._velocities[:, 1:], velocity.unsqueeze(1)], dim=1)
         self._next_step = new.step
         return new
+
+    def amend_last_step(self, before: ParticleState, after: ParticleState) -> None:
+        """The rollout replaced the state :meth:`step` returned from ``before`` by ``after``.
+
+        Exact stages ran after the step (:mod:`lagfluid.models.exact_after`): the newest velocity of the
+        history becomes the corrected displacement over the frame spacing, ``(x_after - x_before) / dt``,
+        as the next frame difference of a stored rollout would be.
+        """
+        nf = before.n_fluid
+        displacement = (after.pos[:nf] - before.pos[:nf]) / self.dt
+        self._velocities = torch.cat([self._velocities[:, :-1], displacement.unsqueeze(1)], dim=1)
 
     def _warm_step(self, state: ParticleState) -> tuple[ParticleState, torch.Tensor]:
         """One frame of the MPS warm start and its finite-difference velocity (Nf, 3), as in training.

@@ -96,6 +96,13 @@ class Simulator(Protocol):
     #   memory_needed(state) -> float   peak bytes a rollout from state needs (lagfluid.memory.rollout_bytes
     #                                   with the simulator's neighbour radius and measured bytes per pair)
     # Without it the run is estimated as MPS is.
+    #
+    # Optional, for exact stages after the step (model.exact_after, lagfluid.models.exact_after):
+    #   amend_last_step(before, after) -> None  the state step(before) returned was replaced by ``after``:
+    #                                           update what the next step reads beyond the state (GNS:
+    #                                           its velocity history); required with rollout_memory
+    #   last_step_learned: bool                 False after a step that is not the model's own (GNS's MPS
+    #                                           warm start): the stages leave it as it is; absent: True
 
 
 _REQUIRED = (

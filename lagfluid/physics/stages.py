@@ -692,23 +692,12 @@ class SplitStepSimulator:
         ctx.record(pos_star=pos[:nf], vel_star=vel[:nf])
 
         if self.collision is not None:
-            v_star = vel[:nf].clone()
-            v_new = self.collision(ctx, pos, vel)
-            with self.timer("collision", device):
-                pos[:nf] = integrate.collide(pos[:nf], v_star, v_new, dt)
-                vel[:nf] = v_new
+            self.collide(ctx, pos, vel)
         ctx.record(pos_collided=pos[:nf], vel_collided=vel[:nf])
 
         pressure = torch.zeros_like(state.pressure)
         if self.pressure is not None:
-            pressure = self.pressure(ctx, pos, vel)
-            ctx.record(pressure_unclamped=pressure)
-            g_grad = self.gradient_graph(ctx, pos)
-            with self.timer("correction", device):
-                if self.settings.clamp_negative_pressure:
-                    pressure = pressure.clamp_min(0.0)
-                acc_p = self.pressure_acceleration(ctx, pos, pressure, g_grad)
-                pos[:nf], vel[:nf] = integrate.correct(pos[:nf], vel[:nf], acc_p, dt)
+            pressure = self.project(ctx, pos, vel)
 
         ctx.info["list_rebuilds"] = float(self.neighbors.builds - builds)
         self._info = ctx.info
@@ -723,6 +712,90 @@ class SplitStepSimulator:
             time=state.time + dt,
             step=state.step + 1,
             bounds=state.bounds,
+            check=False,
+            fluid_count=nf,
+        )
+
+    def collide(self, ctx: StepContext, pos: Tensor, vel: Tensor) -> None:
+        """The collision stage and its update, in place on the fluid rows of ``pos``, ``vel`` (N, 3).
+
+        ``v** = collision(x*, v*)``, ``x** = x* + (v** - v*) dt`` (:func:`lagfluid.integrate.collide`).
+        """
+        nf, dt = ctx.n_fluid, ctx.params.dt
+        v_star = vel[:nf].clone()
+        v_new = self.collision(ctx, pos, vel)
+        with self.timer("collision", pos.device):
+            pos[:nf] = integrate.collide(pos[:nf], v_star, v_new, dt)
+            vel[:nf] = v_new
+
+    def project(self, ctx: StepContext, pos: Tensor, vel: Tensor, relaxation: float = 1.0) -> Tensor:
+        """The pressure stage, the clamp and the correction, in place on ``pos``, ``vel`` (N, 3).
+
+        ``a_p = -grad_min(p) / rho``, ``v += w a_p dt``, ``x += w a_p dt^2``
+        (:func:`lagfluid.integrate.correct`) with the relaxation factor ``w`` (1: the scheme's step;
+        :mod:`lagfluid.models.exact_after` may scale it).
+
+        Returns:
+            (N,) the pressure the stage solved for (clamped at 0 when the settings say so), before ``w``.
+        """
+        nf, dt = ctx.n_fluid, ctx.params.dt
+        pressure = self.pressure(ctx, pos, vel)
+        ctx.record(pressure_unclamped=pressure)
+        g_grad = self.gradient_graph(ctx, pos)
+        with self.timer("correction", pos.device):
+            if self.settings.clamp_negative_pressure:
+                pressure = pressure.clamp_min(0.0)
+            acc_p = self.pressure_acceleration(ctx, pos, pressure, g_grad)
+            if relaxation != 1.0:
+                acc_p = relaxation * acc_p
+            pos[:nf], vel[:nf] = integrate.correct(pos[:nf], vel[:nf], acc_p, dt)
+        return pressure
+
+    @torch.no_grad()
+    def exact_stages(
+        self, state: ParticleState, warm_pressure: Tensor, iterations: int = 1, relaxation: float = 1.0
+    ) -> ParticleState:
+        """The configured collision and pressure stages alone on ``state``'s positions and velocities.
+
+        No advection and no drift: ``state`` is where another scheme's step ended (an end-to-end network,
+        :mod:`lagfluid.models.exact_after`). Each of the ``iterations`` applies the collision stage (if any)
+        and then the pressure projection (if any) with the relaxation factor ``relaxation``, by
+        :meth:`collide` and :meth:`project`, the step's own updates; the PPE's source term uses
+        ``state.params.dt``. Time and step count stay ``state``'s.
+
+        Args:
+            state: the state to correct (its ``pressure`` is returned unchanged when no pressure stage runs).
+            warm_pressure: (N,) the PPE's warm start (the last solved pressure); later iterations start
+                from the one before.
+            iterations: how many times to apply the stages (>= 1).
+            relaxation: ``w`` in (0, 1] of the pressure correction.
+
+        Returns:
+            The corrected state; its pressure is the last solve's (or ``state.pressure``).
+        """
+        if self.constants is None or self.neighbors is None:
+            self.reset(state)
+        self.timer.reset()
+        builds, nf = self.neighbors.builds, state.n_fluid
+        pos, vel, pressure = state.pos.clone(), state.vel.clone(), warm_pressure
+        anchors: list[_Anchor] = []  # graphs carried from one iteration to the next (derived, exact)
+        info: dict[str, float | Tensor] = {}
+        for _ in range(iterations):
+            at = dataclasses.replace(state, pos=pos, vel=vel, pressure=pressure, check=False, fluid_count=nf)
+            ctx = StepContext(at, self.settings, self.constants, self.neighbors, self.timer)
+            ctx._anchors = anchors
+            if self.collision is not None:
+                self.collide(ctx, pos, vel)
+            if self.pressure is not None:
+                pressure = self.project(ctx, pos, vel, relaxation)
+            anchors, info = ctx._anchors, ctx.info
+        info["list_rebuilds"] = float(self.neighbors.builds - builds)
+        self._info, self.last_fields, self._carried = info, None, None
+        return dataclasses.replace(
+            state,
+            pos=pos,
+            vel=vel,
+            pressure=pressure if self.pressure is not None else state.pressure,
             check=False,
             fluid_count=nf,
         )

@@ -1,0 +1,177 @@
+"""Which exact stages after a learned step let GNS and CConv complete the dam (``model.exact_after``).
+
+For each model, ``task=evaluate`` on the 1 s dam (frames every 40 ms, against the same MPS reference at
+2 ms) of the plain model, + exact collision, + MPS pressure, + both (K = 1), and, where one of those does
+not complete, + both with K = 3 iterations and relaxation w = 0.5 (:mod:`lagfluid.models.exact_after`).
+Per row: complete, or the step the rollout guard stops it at; the mean and largest Chamfer distance to
+MPS over the frames it stored, and the mean density error beside MPS's.
+
+Usage::
+
+    python -m benchmarks.exact_after [--models gns cconv cconv_original] [--runs-dir runs/exact_after]
+
+One run at a time (``--threads`` each). A row whose folder already holds ``metrics.json`` is read, not run
+again. Writes ``benchmarks/results/exact_after.{md,csv}`` with provenance and each row's command.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shlex
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+from benchmarks.provenance import provenance, write_results
+from benchmarks.tables.config import compose_config
+from lagfluid.config import build_simulator, scene_params
+from lagfluid.models.exact_after import ExactAfterOptions
+
+REPO = Path(__file__).resolve().parents[1]
+RESULTS = REPO / "benchmarks" / "results"
+FRAME_INTERVAL = 0.04  # s, as the tables
+BOTH = ("model.exact_after.collision=true", "model.exact_after.pressure=true")
+VARIANTS: dict[str, tuple[str, ...]] = {
+    "": (),
+    "collision": ("model.exact_after.collision=true",),
+    "pressure": ("model.exact_after.pressure=true",),
+    "both": BOTH,
+}
+RELAXED = ("both_k3_w05", (*BOTH, "model.exact_after.iterations=3", "model.exact_after.relaxation=0.5"))
+"""The variant run only where one of :data:`VARIANTS`' exact ones does not complete."""
+
+
+def folder(runs: Path, model: str, variant: str) -> Path:
+    """The run folder of ``model`` with ``variant`` (``runs/gns``, ``runs/gns_collision``)."""
+    return runs / (f"{model}_{variant}" if variant else model)
+
+
+def command(
+    model: str, dt: float, overrides: tuple[str, ...], out: Path, args: argparse.Namespace
+) -> list[str]:
+    """The ``task=evaluate`` command of one row: ``args.duration`` of ``args.scene`` in the model's steps."""
+    steps, every = round(args.duration / dt), round(FRAME_INTERVAL / dt)
+    return [
+        *("python", "-m", "lagfluid.run", "task=evaluate", f"model={model}", f"scene={args.scene}"),
+        *(f"steps={steps}", f"write_every={every}", f"threads={args.threads}", "progress=false"),
+        f"evaluate.reference_dir={args.reference_dir}",
+        *overrides,
+        f"out_dir={out}",
+    ]
+
+
+def result_row(metrics: dict[str, Any], cmd: list[str]) -> dict[str, Any]:
+    """One row of the results from a run's ``metrics.json``.
+
+    The stages are read from the run's attributes (``exact_after_*``). A stopped run is reported at the step
+    the guard refused (its ``steps`` done + 1) and that step's time.
+    """
+    s, dt = metrics["summary"], float(metrics["dt"])
+    options = {
+        k.removeprefix("exact_after_"): v
+        for k, v in metrics["simulator"].items()
+        if k.startswith("exact_after_")
+    }
+    stop = metrics["steps"] + 1
+    result = "complete" if metrics["complete"] else f"stops at step {stop} ({stop * dt:.3g} s)"
+    density = s["density_error"]
+    return {
+        "simulator": metrics["model"],
+        "exact stages after the step": ExactAfterOptions(**options).describe() or "none",
+        "dt (ms)": f"{1e3 * dt:g}",
+        "rollout": result,
+        "Chamfer to MPS mean / max (mm)": f"{s['chamfer_mm']['mean']:.1f} / {s['chamfer_mm']['max']:.1f}",
+        "density error mean (MPS)": f"{density['model']['mean']:.4f} ({density['reference']['mean']:.4f})",
+        "command": f"`{shlex.join(cmd)}`",
+    }
+
+
+def _stages(row: dict[str, Any]) -> str:
+    stages = row["exact stages after the step"]
+    return "no exact stage" if stages == "none" else stages
+
+
+def verdict(model: str, rows: list[dict[str, Any]]) -> str:
+    """One sentence: which variants of ``model`` complete (the cheapest first), or the furthest one."""
+    done = [r for r in rows if r["rollout"] == "complete"]
+    if done:
+        best = min(done, key=lambda r: float(r["Chamfer to MPS mean / max (mm)"].split(" / ")[0]))
+        return (
+            f"`{model}`: complete with {'; '.join(_stages(r) for r in done)}; "
+            f"closest to MPS: {best['simulator']} ({best['Chamfer to MPS mean / max (mm)']} mm)."
+        )
+
+    def reach(r: dict[str, Any]) -> int:
+        return int(r["rollout"].split()[3])
+
+    far = max(rows, key=reach)
+    return f"`{model}`: none completes; the furthest is {far['simulator']}, which {far['rollout']}."
+
+
+def run_model(model: str, args: argparse.Namespace) -> list[dict[str, Any]]:
+    """The rows of ``model``: every variant, the relaxed one where one of them does not complete."""
+    cfg = compose_config([f"model={model}", f"scene={args.scene}"])
+    own = build_simulator(cfg).dt
+    dt = float(own) if own is not None else scene_params(cfg).dt
+    rows: list[dict[str, Any]] = []
+    variants = list(VARIANTS.items())
+    for i, (variant, overrides) in enumerate([*variants, RELAXED]):
+        if i == len(variants) and all(r["rollout"] == "complete" for r in rows[1:]):
+            break
+        out = folder(Path(args.runs_dir), model, variant)
+        cmd = command(model, dt, overrides, out, args)
+        if not (out / "metrics.json").is_file():
+            print(f"[exact_after] {shlex.join(cmd)}", flush=True)
+            env = {**os.environ, "OMP_NUM_THREADS": str(args.threads)}
+            subprocess.run([sys.executable, *cmd[1:]], cwd=REPO, env=env, check=False)
+        if not (out / "metrics.json").is_file():
+            raise SystemExit(f"[exact_after] {out} holds no metrics.json: the run failed (see its output)")
+        metrics = json.loads((out / "metrics.json").read_text())
+        rows.append(result_row(metrics, cmd))
+        print(f"[exact_after] {rows[-1]['simulator']}: {rows[-1]['rollout']}", flush=True)
+    return rows
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--models", nargs="+", default=["gns", "cconv", "cconv_original"])
+    ap.add_argument("--scene", default="dam")
+    ap.add_argument("--duration", type=float, default=1.0, help="s of the scene")
+    ap.add_argument("--runs-dir", default="runs/exact_after")
+    ap.add_argument("--reference-dir", default="runs/reference", help="the MPS references' cache")
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument(
+        "--note-file",
+        default=None,
+        help="a markdown file added under the verdicts (where the runs were made)",
+    )
+    ap.add_argument("--results", default=str(RESULTS))
+    args = ap.parse_args(argv)
+    load = os.getloadavg()[0]
+    rows, verdicts = [], []
+    for model in args.models:
+        model_rows = run_model(model, args)
+        rows += model_rows
+        verdicts.append(verdict(model, model_rows))
+    intro = (
+        "# Exact stages after a learned step (`model.exact_after`)\n\n"
+        f"`task=evaluate` on `{args.scene}` for {args.duration:g} s, frames every "
+        f"{1e3 * FRAME_INTERVAL:g} ms, against one MPS reference at the scene's dt. Each model steps by its "
+        "own dt; after each of its steps the exact stages named run on its positions and velocities "
+        "(lagfluid/models/exact_after.py): the MPS collision rule, the PPE with the minimum-pressure "
+        "gradient correction, both; K iterations with relaxation w where one of those does not complete. "
+        "A stopped run is compared over the frames it stored. Chamfer: mean and largest over the frames "
+        "of the symmetric mean nearest-neighbour distance to MPS's fluid; density error: mean |n/n0 - 1| "
+        "over the interior fluid particles.\n\n"
+        + "\n".join(f"- {v}" for v in verdicts)
+        + (f"\n\n{Path(args.note_file).read_text().strip()}" if args.note_file else "")
+    )
+    prov = provenance("benchmarks.exact_after", load, runs=str(args.runs_dir))
+    print(write_results(Path(args.results), "exact_after", rows, intro, prov))
+
+
+if __name__ == "__main__":
+    main()
