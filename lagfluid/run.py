@@ -155,7 +155,7 @@ def _unknown_key(key: str, appended: bool) -> str | None:
         if not isinstance(node, dict):
             return None  # below a value that is not a section (evaluate.reference is null): Hydra decides
         names = sorted(k for k in node if depth or k not in ("defaults", "hydra"))
-        names += [] if depth else ["model", *CONFIG_GROUPS]
+        names = sorted({*names, *([] if depth else ["model", *CONFIG_GROUPS])})  # config.yaml has model: too
         if part not in names:
             prefix = ".".join([*parts[:depth], ""])
             close = difflib.get_close_matches(part, names, n=3, cutoff=0.6)
