@@ -16,7 +16,7 @@ def _register_config_resolvers() -> None:
     ``${lagfluid.if_task:TASK,NAME,A,B}`` is ``A`` when ``TASK == NAME``, else ``B``: ``steps`` is the data
     profile's for ``task=generate`` and 500 otherwise, and ``steps=N`` on the command line still sets it.
     ``${lagfluid.plugin_configs:}`` is the plugins' config folders (:mod:`lagfluid.plugin_configs`).
-    ``${lagfluid.config_groups:}`` is every config group's options, plugins' included (``--help``).
+    (``${lagfluid.config_groups:}``, read only by ``--help``, is registered by :mod:`lagfluid.run`.)
     """
     from omegaconf import OmegaConf
 
@@ -30,14 +30,6 @@ def _register_config_resolvers() -> None:
             return plugin_search_path()
 
         OmegaConf.register_new_resolver("lagfluid.plugin_configs", plugin_configs)
-    if not OmegaConf.has_resolver("lagfluid.config_groups"):
-
-        def config_groups() -> str:
-            from lagfluid.run import help_config_groups
-
-            return help_config_groups()
-
-        OmegaConf.register_new_resolver("lagfluid.config_groups", config_groups)
 
 
 _register_config_resolvers()

@@ -264,6 +264,20 @@ def limit_openmp(argv: Sequence[str]) -> None:
                 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 
+def _register_help_resolver() -> None:
+    """Register ``${lagfluid.config_groups:}``, read only by ``--help`` (``hydra.help.template``).
+
+    Registered here, not in ``lagfluid/__init__``: the package's base layer may not import the tasks.
+    """
+    from omegaconf import OmegaConf
+
+    if not OmegaConf.has_resolver("lagfluid.config_groups"):
+        OmegaConf.register_new_resolver("lagfluid.config_groups", help_config_groups)
+
+
+_register_help_resolver()
+
+
 def main() -> None:
     """Entry point of ``python -m lagfluid.run``."""
     limit_openmp(sys.argv[1:])  # first: before anything imports torch

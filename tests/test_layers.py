@@ -26,7 +26,6 @@ LAYERS: dict[str, tuple[str, ...]] = {
         "lagfluid.retrain",  # the retrain-everything sweep of lagfluid.run
         "lagfluid.multirun_timer",  # a Hydra callback of every multirun
         "lagfluid.config",  # a run's setup from its config, shared by the tasks
-        "lagfluid.memory",  # the entry points' allocator setting (stdlib only)
         "lagfluid.outputs",  # a run's output files, replaced together
         "lagfluid.locks",  # the locks on what a run writes, and their Hydra callback
         "lagfluid.simulate",
@@ -66,8 +65,11 @@ LAYERS: dict[str, tuple[str, ...]] = {
     # plugin_configs: the config-resolver lagfluid/__init__ registers (stdlib and errors only)
     # progress: the rollout's and the trainer's bar or log lines (tqdm and logging only)
     # device_constants: small constant tensors cached per device (torch only)
+    # memory: the allocator setting and a rollout's memory estimate (stdlib, numpy; the state for its types),
+    # asked by the tasks and by each simulator's memory_needed
     "base": (
         "lagfluid",
+        "lagfluid.memory",
         "lagfluid.state",
         "lagfluid.errors",
         "lagfluid.plugin_configs",
