@@ -393,29 +393,9 @@ def test_a_guard_stop_is_an_error_under_simulate_and_evaluate_alike(tmp_path, mo
     with pytest.raises(RolloutError, match=r"step \d+: Courant number"):
         dispatch(_compose("experiment=debug", "dt=0.05", "steps=10", f"out_dir={tmp_path / 'simulate'}"))
 
-    class Exploding:
-        """MPS whose fluid velocity turns NaN at step 2: the guard stops the model, not its reference."""
+    from tests.test_evaluate import _Exploding  # MPS whose velocities turn NaN at step 2
 
-        def __init__(self, cfg):
-            from lagfluid.models.mps_simulator import build_mps
-
-            self.inner = build_mps(cfg)
-            self.name, self.dt, self.history_length, self.max_courant = "exploding", None, 0, None
-            self.parameters, self.last_fields, self.last_info, self.last_timings = 0, None, {}, {}
-
-        def reset(self, state, history=()):
-            self.inner.reset(state, history)
-
-        def step(self, state, *, record=False):
-            new = self.inner.step(state)
-            if new.step >= 2:
-                new.vel[0] = float("nan")
-            return new
-
-        def attributes(self):
-            return {}
-
-    monkeypatch.setitem(registry._REGISTERED, "exploding", Exploding)
+    monkeypatch.setitem(registry._REGISTERED, "exploding", _Exploding)
     out = tmp_path / "evaluate"
     cfg = _compose(
         "task=evaluate",
