@@ -565,3 +565,93 @@ def test_compiled_blocks_of_kernel_cells_equal_the_torch_selection(monkeypatch):
             assert torch.equal(a.crow_indices(), b.crow_indices())
             assert torch.equal(a.col_indices(), b.col_indices()) and torch.equal(a.values(), b.values())
             assert a.values().numel() > 0
+
+
+# ------------------------------------------------------------------------- fine-tuning DLF's network
+FINETUNE = (
+    "model=cconv",
+    "model.start_from=dlf",
+    "model.axes=y_up",
+    "model.surface_weight=dlf",
+    "model.cconv.timestep=0.004",  # data=tiny's frame: 2 solver steps
+    "model.cconv.gravity=[0.0,-9.8065,0.0]",
+    "model.cconv.length_unit=1.0",
+    "++train.unroll_frames=1",
+)
+
+
+def test_fine_tuning_starts_from_dlfs_weights_with_the_datas_gravity(step_data):
+    from baselines.cconv.trainable import CConvTrainable
+
+    trainable = CConvTrainable(_compose(*FINETUNE))
+    net = trainable.build_network()
+    theirs = load_dlf_network(DLF_WEIGHTS)
+    for name, tensor in theirs.state_dict().items():
+        if name != "gravity":
+            assert torch.equal(net.state_dict()[name], tensor), name
+    assert net.gravity.tolist() == pytest.approx([0.0, -9.8065, 0.0])  # the data's, not their 9.81
+    stats = trainable.fit_statistics(net, [trainable.datasets(step_data)[0][0]])
+    assert stats["gravity"] == pytest.approx([0.0, -9.8065, 0.0], abs=1e-5)  # the data's z, in their y
+    assert trainable.identity() == {
+        "surface_offset": 0.5, "unroll_frames": 1, "axes": "y_up",
+        "surface_weight": pytest.approx(1.9 * 4 / math.pi), "start_from": "dlf",
+    }  # fmt: skip
+    # a network step that does not divide the frame is refused, naming it
+    odd = CConvTrainable(_compose(*FINETUNE, "model.cconv.timestep=0.003"))
+    with pytest.raises(ConfigError, match=r"timestep=0\.003"):
+        odd.fit_statistics(odd.build_network(), [odd.datasets(step_data)[0][0]])
+    with pytest.raises(ConfigError, match=r"model\.axes='x_up'"):
+        CConvTrainable(_compose(*FINETUNE, "model.axes=x_up"))
+    with pytest.raises(ConfigError, match=r"model\.start_from='nowhere\.pt'"):
+        CConvTrainable(_compose(*FINETUNE, "model.start_from=nowhere.pt"))
+
+
+def test_a_turn_about_gravity_keeps_gravity_and_turns_the_horizontal():
+    from baselines.cconv.trainable import CConvTrainable
+
+    turning = CConvTrainable(_compose(*FINETUNE, "++train.rotate_about_gravity=true"))
+    torch.manual_seed(3)
+    frames = [turning.frame(torch.device("cpu"), torch.float64) for _ in range(3)]
+    down = torch.tensor([0.0, 0.0, -1.0], dtype=torch.float64)
+    for frame in frames:
+        torch.testing.assert_close(frame @ frame.T, torch.eye(3, dtype=torch.float64))
+        torch.testing.assert_close(frame @ down, Y_UP.double() @ down)  # gravity stays their -y
+    assert not torch.allclose(frames[0], frames[1])  # the horizontal axes turn from batch to batch
+    still = CConvTrainable(_compose(*FINETUNE))
+    torch.testing.assert_close(still.frame(torch.device("cpu"), torch.float64), Y_UP.double())
+
+
+def test_a_fine_tuned_checkpoint_rolls_out_as_it_was_trained(step_data, tmp_path):
+    # The simulator of model=cconv reads the axes and the wall weighting back from the checkpoint: its
+    # step from a window's state is the trainable's first predicted frame (the same network, walls, axes).
+    from torch_geometric.data import Batch
+
+    from baselines.cconv.trainable import CConvTrainable
+    from lagfluid.data.datasets import StepWindows
+    from lagfluid.state import ParticleState, SceneParams
+    from lagfluid.train import train
+
+    overrides = (*FINETUNE, "task=train", "train=cconv_cpu", "data=tiny", f"data.out_dir={step_data}")
+    train(_compose(*overrides, f"out_dir={tmp_path}", "progress=false", "train.iterations.cconv=2",
+                   "train.lr_milestones=[1]", "train.log_every=1", "train.valid_every=2"))  # fmt: skip
+    sim = build_simulator(_compose("model=cconv", f"model.weights={tmp_path}", "dtype=float64"))
+    torch.testing.assert_close(sim.axes, Y_UP.double())
+    assert sim.surface_weight == pytest.approx(1.9 * 4 / math.pi) and sim.dt == 0.004
+
+    trainable = CConvTrainable(_compose(*overrides))
+    window = trainable.datasets(step_data)[0][1]
+    whole = StepWindows(step_data, "train", steps=0, frames=1, boundary_radius=None)[1]
+    net = sim.net
+    batch = Batch.from_data_list([window]).apply(lambda t: t.double() if t.is_floating_point() else t)
+    with torch.no_grad():
+        pred, _ = trainable.predict(net, batch)
+    params = SceneParams(dt=0.004, l0=float(whole.l0))
+    state = ParticleState(whole.pos.double(), whole.vel.double(), whole.ptype, params=params, check=False)
+    sim.reset(state)
+    moved = sim.step(state)
+    nf = state.n_fluid
+    # the prediction: displacements in their axes (length unit 1 m)
+    torch.testing.assert_close(
+        pred[:, 0, :3], (moved.pos[:nf] - state.pos[:nf]) @ Y_UP.double().T, rtol=0, atol=1e-9
+    )
+    assert not torch.allclose(moved.pos[:nf], state.pos[:nf] + 0.004 * state.vel[:nf], atol=1e-6)

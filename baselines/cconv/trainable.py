@@ -20,8 +20,15 @@ weighted 1 / F. MPS's per-step accelerations are mostly particle-level noise aft
 (residual 3.6x the smooth field at 2 ms, 2.0x at 8 ms: ``benchmarks/results/acceleration_noise.md``); a
 longer horizon averages it out of the target.
 
+**Fine-tuning DeepLagrangianFluids' network** (``experiment=finetune_cconv_dlf``): ``model.start_from=dlf``
+starts from their published weights, ``model.axes=y_up`` trains in their axes (y up: positions, velocities,
+walls and targets are rotated in, as in their rollouts), ``model.surface_weight`` scales the surface normals
+as the simulator does, and the network steps by its own 20 ms: each stored frame of ``data=dlf_frames``
+(every 10 solver steps) is one network step. ``train.rotate_about_gravity`` turns each batch by a random
+angle about the vertical (their network is not rotation-equivariant; the data's walls are axis-aligned).
+
 There are no normalisation statistics (their network has none); :meth:`CConvTrainable.fit_statistics`
-checks that the network's time step, particle radius and gravity are the data's.
+checks that the network's time step, particle radius and gravity are the data's (gravity in its axes).
 """
 
 from __future__ import annotations
@@ -42,6 +49,7 @@ from lagfluid.state import ParticleType
 
 from .boundary import SURFACE_RADIUS, surface_points
 from .network import CConvNet
+from .simulator import AXES, DLF_WEIGHTS, load_dlf_network, surface_weight_of
 
 NAME = "cconv"
 UNROLL = 2
@@ -87,10 +95,26 @@ class CConvTrainable:
     def __init__(self, cfg: Any) -> None:
         self.options = OmegaConf.to_container(cfg.model[NAME], resolve=True)
         self.surface_offset = float(cfg.model.surface_offset)
+        self.axes_name = str(cfg.model.get("axes") or "z_up")
+        if self.axes_name not in AXES:
+            raise ConfigError(f"model.axes={self.axes_name!r}: choose one of {sorted(AXES)}")
+        self.axes = AXES[self.axes_name]
+        self.surface_weight = surface_weight_of(cfg.model)
+        self.start_from = cfg.model.get("start_from")
+        if (
+            self.start_from is not None
+            and str(self.start_from) != "dlf"
+            and not Path(str(self.start_from)).is_file()
+        ):
+            raise ConfigError(
+                f"model.start_from={self.start_from!r}: give 'dlf' (DeepLagrangianFluids' published "
+                "weights) or a MyParticleNetwork .pt state dict"
+            )
         train = cfg.get("train") or {}
         self.unroll_frames = int(train.get("unroll_frames", 0) or 0)
         if self.unroll_frames < 0:
             raise ConfigError(f"train.unroll_frames must be >= 0, got {self.unroll_frames}")
+        self.rotate_about_gravity = bool(train.get("rotate_about_gravity", False))
 
     # ------------------------------------------------------------------------ Trainable
     def datasets(self, data_dir: Path) -> tuple[Any, Any]:
@@ -106,8 +130,17 @@ class CConvTrainable:
         )
 
     def build_network(self) -> nn.Module:
-        """A fresh :class:`CConvNet` from the options."""
-        return CConvNet(**self.options)
+        """A :class:`CConvNet` of the options: fresh, or ``model.start_from``'s weights (module doc).
+
+        The gravity buffer is an option of the network (the data's, checked by :meth:`fit_statistics`), not a
+        trained weight: DeepLagrangianFluids' file holds their 9.81 m/s^2, the data's may differ.
+        """
+        if self.start_from is None:
+            return CConvNet(**self.options)
+        path = DLF_WEIGHTS if str(self.start_from) == "dlf" else Path(str(self.start_from))
+        net = load_dlf_network(path, **self.options)
+        net.gravity.copy_(torch.tensor([float(g) for g in self.options["gravity"]]))
+        return net
 
     def fit_statistics(self, net: nn.Module, items: Sequence[Data]) -> dict[str, Any]:
         """No statistics to fit: checks the network's dt, particle radius and gravity against the data.
@@ -117,20 +150,62 @@ class CConvTrainable:
         """
         dt = _scalar(torch.cat([item.dt for item in items]), "dt")
         l0 = _scalar(torch.cat([item.l0 for item in items]), "l0")
-        gravity = torch.cat([item.gravity for item in items]).unique(dim=0)
-        checks = {
-            "timestep": (net.timestep, dt),
-            "particle_radius": (net.particle_radius, l0 / 2),
-        }
-        for key, (ours, data) in checks.items():
-            if abs(ours - data) > 1e-6 * abs(data):
-                raise ConfigError(f"model.cconv.{key}={ours}, the data's is {data}; set it to the data's")
-        if gravity.shape[0] != 1 or not torch.allclose(gravity[0], net.gravity.cpu(), atol=1e-5):
+        step = dt  # the time a network step must take: the solver's, or one stored frame's
+        if self.unroll_frames:
+            step = dt * _scalar(torch.cat([item.frame_steps for item in items]).double(), "frame_steps")
+        self.steps_per_frame(
+            net.timestep, step
+        )  # raises for a network step that fits no whole number of times
+        if not self.unroll_frames and abs(net.timestep - dt) > 1e-6 * dt:
             raise ConfigError(
-                f"model.cconv.gravity={net.gravity.tolist()}, the data's is {gravity.tolist()}; set it to "
-                "the data's (CConv takes gravity as a constant of the network)"
+                f"model.cconv.timestep={net.timestep}, the data's is {dt}; set it to the data's"
             )
-        return {"timestep": dt, "particle_radius": l0 / 2, "gravity": gravity[0].tolist()}
+        if abs(net.particle_radius - l0 / 2) > 1e-6 * l0:
+            raise ConfigError(
+                f"model.cconv.particle_radius={net.particle_radius}, the data's is {l0 / 2}; "
+                "set it to the data's"
+            )
+        gravity = torch.cat([item.gravity for item in items]).unique(dim=0)
+        in_axes = gravity.double() @ self.axes.double().T  # the data's gravity in the network's axes
+        if gravity.shape[0] != 1 or not torch.allclose(in_axes[0], net.gravity.cpu().double(), atol=1e-5):
+            raise ConfigError(
+                f"model.cconv.gravity={net.gravity.tolist()}, the data's is {in_axes.tolist()} in the "
+                f"network's axes (model.axes={self.axes_name}); set it to the data's (CConv takes gravity as "
+                "a constant of the network)"
+            )
+        return {"timestep": net.timestep, "particle_radius": l0 / 2, "gravity": in_axes[0].tolist()}
+
+    @staticmethod
+    def steps_per_frame(timestep: float, frame_dt: float) -> int:
+        """Network steps of ``timestep`` s in one target interval of ``frame_dt`` s (a whole number >= 1).
+
+        Raises:
+            ConfigError: ``frame_dt`` is no whole multiple of the network's step.
+        """
+        ratio = frame_dt / timestep
+        if round(ratio) < 1 or abs(ratio - round(ratio)) > 1e-6:
+            raise ConfigError(
+                f"model.cconv.timestep={timestep} s does not divide the data's interval {frame_dt} s between "
+                "targets (dt, or dt x sample_every with train.unroll_frames): choose a divisor"
+            )
+        return round(ratio)
+
+    def frame(self, device: torch.device, dtype: torch.dtype) -> Tensor:
+        """(3, 3) rotation from the data's axes to the network's for one batch.
+
+        ``model.axes``, after a random turn about the vertical (z, the data's gravity axis) when
+        ``train.rotate_about_gravity``: the walls, the fluid and the targets turn together.
+        """
+        rotation = self.axes.to(dtype=torch.float64)
+        if self.rotate_about_gravity:
+            angle = float(torch.rand(()) * 2 * torch.pi)  # torch's RNG: seeded, and restored on resume
+            c, s = (
+                torch.cos(torch.tensor(angle, dtype=torch.float64)),
+                torch.sin(torch.tensor(angle, dtype=torch.float64)),
+            )
+            turn = torch.tensor([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
+            rotation = rotation @ turn
+        return rotation.to(device=device, dtype=dtype)
 
     def predict(self, net: nn.Module, batch: Batch) -> tuple[Tensor, Tensor]:
         """Predicted and true fluid motion with the loss weight, (Nf, K, 4) each.
@@ -146,12 +221,15 @@ class CConvTrainable:
         l0 = _scalar(batch.l0, "l0")
         points, normals, box_batch = self.surface(batch.pos, fluid, sample, l0)
         fluid_batch = sample[fluid]
-        pos, vel = batch.pos[fluid], batch.vel[fluid]
+        rotation = self.frame(batch.pos.device, batch.pos.dtype)  # data axes -> the network's
+        points, normals = points @ rotation.T, self.surface_weight * normals @ rotation.T
+        pos, vel = batch.pos[fluid] @ rotation.T, batch.vel[fluid] @ rotation.T
         if self.unroll_frames:
-            every = int(_scalar(batch.frame_steps.double(), "frame_steps"))
-            steps, truth = every * self.unroll_frames, batch.y_frames
+            frame_dt = _scalar(batch.dt, "dt") * _scalar(batch.frame_steps.double(), "frame_steps")
+            every = self.steps_per_frame(net.timestep, frame_dt)
+            steps, truth = every * self.unroll_frames, batch.y_frames @ rotation.T
         else:
-            every, steps, truth = 1, UNROLL, batch.y[:, :UNROLL]
+            every, steps, truth = 1, UNROLL, batch.y[:, :UNROLL] @ rotation.T
         predicted, weights = [], []
         for k in range(1, steps + 1):
             pos2, vel2 = net.integrate_pos_vel(pos, vel)
@@ -166,7 +244,7 @@ class CConvTrainable:
                 weights.append(torch.exp(-neighbors / NEIGHBOR_SCALE))
         weight = torch.stack(weights, dim=1).unsqueeze(-1).detach()  # (Nf, K, 1)
         # displacements from the window's start: the same loss, without float32's rounding of whole positions
-        start, unit = batch.pos[fluid].unsqueeze(1), net.length_unit
+        start, unit = (batch.pos[fluid] @ rotation.T).unsqueeze(1), net.length_unit
         prediction = torch.cat([(torch.stack(predicted, dim=1) - start) / unit, weight], dim=-1)
         target = torch.cat([(truth - start) / unit, weight], dim=-1)
         return prediction, target
@@ -192,10 +270,23 @@ class CConvTrainable:
         return points[keep], normals[keep], box_batch[keep]
 
     def identity(self) -> dict[str, Any]:
-        """The surface offset (it changes what the network sees of the walls) and the unroll to frames."""
+        """What the network sees of the walls (surface offset, weight), its axes, start and unroll.
+
+        The simulator of ``model=cconv`` reads ``surface_offset``, ``axes`` and ``surface_weight`` back from
+        the checkpoint, so a rollout sees the walls and axes the training did.
+        """
         identity: dict[str, Any] = {"surface_offset": self.surface_offset}
-        if self.unroll_frames:  # only then, so checkpoints trained without it keep their identity
+        # each only when set, so checkpoints trained before the option existed keep their identity
+        if self.unroll_frames:
             identity["unroll_frames"] = self.unroll_frames
+        if self.axes_name != "z_up":
+            identity["axes"] = self.axes_name
+        if self.surface_weight != 1.0:
+            identity["surface_weight"] = self.surface_weight
+        if self.start_from is not None:
+            identity["start_from"] = str(self.start_from)
+        if self.rotate_about_gravity:
+            identity["rotate_about_gravity"] = True
         return identity
 
 
