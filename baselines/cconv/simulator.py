@@ -20,7 +20,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from lagfluid.errors import RolloutError
+from lagfluid.errors import ConfigError, RolloutError
 from lagfluid.memory import rollout_bytes
 from lagfluid.models.checkpoint import CheckpointError, MissingWeightsError, read_checkpoint
 from lagfluid.models.training_range import RangeWarner, checkpoint_range
@@ -34,12 +34,14 @@ BYTES_PER_PAIR = 900.0
 """Memory per pair within the filter radius of a step (:meth:`CConvSimulator.memory_needed`)."""
 
 __all__ = [
+    "AXES",
     "DLF_SURFACE_WEIGHT",
     "MAX_COURANT",
     "Y_UP",
     "CConvSimulator",
     "build_original",
     "load_dlf_network",
+    "surface_weight_of",
 ]
 
 DLF_SURFACE_WEIGHT = 1.9 * 4 / math.pi
@@ -57,6 +59,29 @@ water fall's splashes (MPS reaches 11 m/s there) is 4.5 spacings."""
 
 Y_UP = torch.tensor([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
 """Rotation from lagfluid's axes (z up) to DeepLagrangianFluids' (y up): ``x_theirs = Y_UP @ x_ours``."""
+
+AXES = {"z_up": torch.eye(3), "y_up": Y_UP}
+"""``model.axes``: the rotation from lagfluid's axes to a network's (``y_up``: DeepLagrangianFluids')."""
+
+
+def surface_weight_of(model: Any, default: float = 1.0) -> float:
+    """``model.surface_weight``: a number, ``dlf`` (:data:`DLF_SURFACE_WEIGHT`) or null/absent (``default``).
+
+    Raises:
+        ConfigError: anything else, or a weight that is not > 0.
+    """
+    value = model.get("surface_weight")
+    if value is None:
+        return float(default)
+    if str(value) == "dlf":
+        return DLF_SURFACE_WEIGHT
+    try:
+        weight = float(value)
+    except (TypeError, ValueError):
+        weight = float("nan")
+    if not weight > 0:
+        raise ConfigError(f"model.surface_weight={value!r}: give a number > 0, 'dlf' or null")
+    return weight
 
 
 class CConvSimulator:
@@ -218,8 +243,7 @@ def build_original(cfg: Any) -> CConvSimulator:
     weights = cfg.model.get("weights") or DLF_WEIGHTS
     dtype = getattr(torch, str(cfg.dtype))
     net = load_dlf_network(str(weights)).to(device=torch.device(str(cfg.device)), dtype=dtype)
-    weight = cfg.model.get("surface_weight")
-    weight = DLF_SURFACE_WEIGHT if weight is None else float(weight)
+    weight = surface_weight_of(cfg.model, DLF_SURFACE_WEIGHT)
     return CConvSimulator(net, "cconv_original", str(weights), Y_UP, float(cfg.model.surface_offset), weight)
 
 
@@ -227,12 +251,18 @@ SHIPPED = Path(__file__).resolve().parent / "weights"
 """The shipped weights of ``model=cconv`` (``cconv.pt``) and their model card, once trained."""
 DLF_WEIGHTS = SHIPPED / "dlf" / "pretrained_model_weights.pt"
 """DeepLagrangianFluids' published network (CDLA-Permissive-1.0, licence and card beside it)."""
+FINETUNED = SHIPPED / "dlf_finetuned"
+"""``model=cconv_finetuned``'s shipped weights: :data:`DLF_WEIGHTS` fine-tuned here (card beside them)."""
 
 
 def load_cconv(
     path: str | Path, device: str = "cpu", dtype: torch.dtype = torch.float32
-) -> tuple[CConvNet, float]:
-    """The :class:`CConvNet` of a lagfluid checkpoint ``path`` (``cconv.pt``) and its surface offset (l0).
+) -> tuple[CConvNet, dict[str, Any]]:
+    """The :class:`CConvNet` of a lagfluid checkpoint ``path`` (``cconv.pt``) and how it sees a scene.
+
+    Returns:
+        The network and its training's ``surface_offset`` (l0), ``axes`` (a name of :data:`AXES`) and
+        ``surface_weight``, each with its default where the checkpoint predates it.
 
     Raises:
         CheckpointError: a missing or unreadable file, or the network of another model.
@@ -241,21 +271,56 @@ def load_cconv(
     net = CConvNet(**ckpt["options"])
     net.load_state_dict(ckpt["state_dict"])
     identity = json.loads(ckpt.get("meta", {}).get("identity", "{}"))
-    return net.to(device=torch.device(device), dtype=dtype), float(identity.get("surface_offset", 0.5))
+    view = {
+        "surface_offset": float(identity.get("surface_offset", 0.5)),
+        "axes": str(identity.get("axes", "z_up")),
+        "surface_weight": float(identity.get("surface_weight", 1.0)),
+    }
+    if view["axes"] not in AXES:
+        raise CheckpointError(f"{path}: axes {view['axes']!r} is none of {sorted(AXES)}")
+    return net.to(device=torch.device(device), dtype=dtype), view
 
 
 def build_simulator(cfg: Any) -> CConvSimulator:
-    """``model=cconv``: the network of ``model.weights/cconv.pt`` (null: the shipped ones), our axes and dt.
+    """``model=cconv``: the network of ``model.weights/cconv.pt`` (null: the shipped ones).
+
+    Axes, wall weighting and surface offset are the checkpoint's own (:func:`load_cconv`).
 
     Raises:
-        CheckpointError: no weights there (none are shipped before a CPU training has been run).
+        CheckpointError: no weights there.
     """
-    folder = Path(str(cfg.model.weights)) if cfg.model.get("weights") else SHIPPED
+    training = "python -m lagfluid.run task=train model=cconv train=cconv_cpu data=cpu"
+    return _trained(cfg, "cconv", SHIPPED, training)
+
+
+def build_finetuned(cfg: Any) -> CConvSimulator:
+    """``model=cconv_finetuned``: DeepLagrangianFluids' network fine-tuned here (:data:`FINETUNED`).
+
+    ``model.weights`` null: the shipped ones; else the out_dir of ``experiment=finetune_cconv_dlf``.
+
+    Raises:
+        CheckpointError: no weights there.
+    """
+    return _trained(
+        cfg, "cconv_finetuned", FINETUNED, "python -m lagfluid.run experiment=finetune_cconv_dlf threads=2"
+    )
+
+
+def _trained(cfg: Any, name: str, shipped: Path, train_command: str) -> CConvSimulator:
+    """The simulator ``name`` of the checkpoint ``model.weights/cconv.pt`` (null: ``shipped``'s)."""
+    folder = Path(str(cfg.model.weights)) if cfg.model.get("weights") else shipped
     path = folder / "cconv.pt"
     if not path.is_file():
         raise MissingWeightsError(
-            f"no CConv weights at {path}: train them (python -m lagfluid.run task=train model=cconv "
-            "train=cconv_cpu data=cpu) and pass model.weights=<that out_dir>"
+            f"no CConv weights at {path}: train them ({train_command}) and pass model.weights=<that out_dir>"
         )
-    net, offset = load_cconv(path, str(cfg.device), getattr(torch, str(cfg.dtype)))
-    return CConvSimulator(net, "cconv", str(path), torch.eye(3), offset, trained_range=checkpoint_range(path))
+    net, view = load_cconv(path, str(cfg.device), getattr(torch, str(cfg.dtype)))
+    return CConvSimulator(
+        net,
+        name,
+        str(path),
+        AXES[view["axes"]],
+        view["surface_offset"],
+        view["surface_weight"],
+        trained_range=checkpoint_range(path),
+    )
