@@ -27,7 +27,10 @@ draws are functions of the seed and the iteration: :class:`EpochBatches`, :class
 checkpoint carries the losses since the last logged row, and a run stopped before its first checkpoint
 starts its log afresh (:func:`_start_csv`). A finished trainable is skipped; a checkpoint of other network
 options, data or settings is an error, never silently mixed. A non-finite loss stops the run naming the
-iteration.
+iteration. ``train.max_seconds=S`` caps the run's wall time (a lease of a GPU, a job's time limit): once S
+seconds have passed since the run began, the iteration in progress finishes, a checkpoint is written and the
+run stops (exit status 0; later trainables, on-policy rounds and the export wait); the same command continues
+it, exactly as above.
 
 **On-policy rounds.** ``train.onpolicy.rounds=R`` (with ``stage=all``, or a stage in
 ``train.onpolicy.trainables``) then fine-tunes those networks on R rounds of the model's own rollouts
@@ -217,8 +220,14 @@ def _per_trainable(tcfg: DictConfig, key: str, name: str, default: Any = None) -
     return section[name]
 
 
-def train_one(cfg: DictConfig, trainable: Trainable, out_dir: Path) -> dict[str, Any]:
-    """Train (or resume, or skip when finished) one trainable's network; returns its summary."""
+def train_one(
+    cfg: DictConfig, trainable: Trainable, out_dir: Path, deadline: float | None = None
+) -> dict[str, Any]:
+    """Train (or resume, or skip when finished) one trainable's network; returns its summary.
+
+    With a ``deadline`` (a :func:`time.monotonic` value, from ``train.max_seconds``) the first iteration that
+    ends after it is checkpointed and the training stops there: the summary's ``stopped`` is then True.
+    """
     tcfg, kind = cfg.train, trainable.name
     options = dict(trainable.options)
     iterations = int(_per_trainable(tcfg, "iterations", kind))
@@ -292,7 +301,7 @@ def train_one(cfg: DictConfig, trainable: Trainable, out_dir: Path) -> dict[str,
         )
         if start_step >= iterations:
             log.info("%s: already trained (%d iterations) in %s, skipped", kind, start_step, ckpt_path)
-            return {"kind": kind, "step": start_step, "skipped": True, **meta}
+            return {"kind": kind, "step": start_step, "skipped": True, "stopped": False, **meta}
         optimizer.load_state_dict(ckpt["optimizer"])
         torch.set_rng_state(ckpt["rng"])
         window = [float(v) for v in ckpt.get("loss_window", [])]  # the next log row's losses before the stop
@@ -362,10 +371,10 @@ def train_one(cfg: DictConfig, trainable: Trainable, out_dir: Path) -> dict[str,
             save_checkpoint(ckpt_path, payload)
         distributed.barrier()  # no rank runs ahead of a checkpoint it may have to resume from
 
-    step, t_last = start_step, time.perf_counter()
+    step, t_last, stopped = start_step, time.perf_counter(), False
     bar = progress_bar(iterations, enabled=bool(cfg.progress), initial=start_step, desc=f"train {kind}")
     try:
-        while step < iterations:
+        while step < iterations and not stopped:
             for batch in loader:
                 if step >= iterations:
                     break
@@ -418,14 +427,33 @@ def train_one(cfg: DictConfig, trainable: Trainable, out_dir: Path) -> dict[str,
                     bar.set_postfix(loss=f"{sum(window) / len(window):.4g}", valid=f"{valid:.4g}")
                     window = []
                     t_last = time.perf_counter()
-                if step % int(tcfg.checkpoint_every) == 0 or last:
+                stopped = not last and deadline is not None and time.monotonic() >= deadline
+                if step % int(tcfg.checkpoint_every) == 0 or last or stopped:
                     save(step)
                     t_last = time.perf_counter()
+                if stopped:
+                    break
     finally:
         bar.close()
         csv_file.close()
-    log.info("%s: %d iterations in %.0f s -> %s", kind, step, elapsed, ckpt_path)
-    return {"kind": kind, "step": step, "train_seconds": elapsed, "checkpoint": str(ckpt_path)}
+    if stopped:
+        log.info(
+            "%s: stopped by train.max_seconds at iteration %d of %d (checkpoint %s); the same command "
+            "continues",
+            kind,
+            step,
+            iterations,
+            ckpt_path,
+        )
+    else:
+        log.info("%s: %d iterations in %.0f s -> %s", kind, step, elapsed, ckpt_path)
+    return {
+        "kind": kind,
+        "step": step,
+        "train_seconds": elapsed,
+        "checkpoint": str(ckpt_path),
+        "stopped": stopped,
+    }
 
 
 def check_export_to(export_to: str | os.PathLike) -> None:
@@ -448,13 +476,31 @@ def check_export_to(export_to: str | os.PathLike) -> None:
         raise ConfigError(f"export_to={export_to} cannot be written: {folder.resolve()} is not writable")
 
 
+def max_seconds(cfg: DictConfig) -> float | None:
+    """``train.max_seconds``: the run's wall-time cap in s, or None (no cap; also a profile without the key).
+
+    Raises:
+        ConfigError: not a finite number > 0.
+    """
+    value = cfg.train.get("max_seconds")
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value < math.inf:
+        raise ConfigError(
+            f"train.max_seconds must be a number of seconds > 0 (or null: no cap), got {value!r}"
+        )
+    return float(value)
+
+
 def train(cfg: DictConfig) -> list[dict[str, Any]]:
     """``task=train``: train ``cfg.stage`` (one trainable of ``cfg.model``, or ``all`` of them in turn).
 
     Raises:
         UnknownNameError: the model has no trainables.
-        ConfigError: an unknown ``stage``.
+        ConfigError: an unknown ``stage``; a ``train.max_seconds`` that is not a number > 0, or one with
+            on-policy rounds or under torchrun.
     """
+    start = time.monotonic()
     model = str(cfg.model.name)
     trainables = get_trainables(model, cfg)
     stage = str(cfg.stage)
@@ -470,6 +516,14 @@ def train(cfg: DictConfig) -> list[dict[str, Any]]:
             "train.onpolicy.rounds under torchrun: the rounds generate data in one process; run them without "
             "torchrun (train.onpolicy.rounds=0 for the data-parallel part)"
         )
+    cap = max_seconds(cfg)
+    if cap is not None and with_rounds:  # the rounds' own trainings would run past the cap
+        raise ConfigError(
+            f"train.max_seconds={cap:g} caps the one-step training, not train.onpolicy.rounds="
+            f"{onpolicy.rounds}; set train.max_seconds=null or train.onpolicy.rounds=0"
+        )
+    if cap is not None and distributed.world()[1] > 1:  # each rank's clock would stop it at its own iteration
+        raise ConfigError(f"train.max_seconds={cap:g} under torchrun: not supported; run without it")
     if with_rounds:  # a command that cannot remake the dataset's scenes fails now, not after the training
         check_same_scenes(cfg)
     if cfg.get("export_to") and distributed.is_main():  # before the training, not after it
@@ -479,8 +533,9 @@ def train(cfg: DictConfig) -> list[dict[str, Any]]:
     # each trainable's files are locked, not the folder: a sweep over stage trains them side by side in it;
     # under torchrun rank 0 writes them (and holds the locks)
     locks = hold_outputs(out_dir, "train", names) if distributed.is_main() else contextlib.nullcontext()
+    deadline = None if cap is None else start + cap
     with locks:
-        return _train_in(cfg, trainables, names, onpolicy, with_rounds, out_dir)
+        return _train_in(cfg, trainables, names, onpolicy, with_rounds, out_dir, deadline)
 
 
 def _train_in(
@@ -490,10 +545,15 @@ def _train_in(
     onpolicy: OnPolicy,
     with_rounds: bool,
     out_dir: Path,
+    deadline: float | None = None,
 ) -> list[dict[str, Any]]:
     """The training of :func:`train` once its trainables' files in ``out_dir`` are locked."""
     out_dir.mkdir(parents=True, exist_ok=True)
-    summaries = [train_one(cfg, trainables[name], out_dir) for name in names]
+    summaries = []
+    for name in names:
+        summaries.append(train_one(cfg, trainables[name], out_dir, deadline))
+        if summaries[-1].get("stopped"):  # the cap is the run's: the later trainables and the export wait
+            return summaries
     sources = dict.fromkeys(names, out_dir)  # where each trained network ends up
     if with_rounds:
         last_round = run_rounds(cfg, onpolicy, out_dir, train_one)

@@ -477,6 +477,42 @@ PLANTS = [
         "if not (_is_number(w) and 0 < w):",
         "tests/test_exact_after.py::test_a_bad_exact_after_is_one_config_error_naming_it",
     ),
+    # train.max_seconds and benchmarks/gpu_train.sh (issue 35, item 6)
+    (
+        "train.max_seconds ignored",
+        "lagfluid/train.py",
+        "stopped = not last and deadline is not None and time.monotonic() >= deadline",
+        "stopped = False",
+        "tests/test_train.py::test_max_seconds_stops_after_a_checkpoint_and_the_same_command_continues_exactly",
+    ),
+    (
+        "a training stopped by train.max_seconds loses the iterations since its last checkpoint",
+        "lagfluid/train.py",
+        "if step % int(tcfg.checkpoint_every) == 0 or last or stopped:",
+        "if step % int(tcfg.checkpoint_every) == 0 or last:",
+        "tests/test_train.py::test_max_seconds_stops_after_a_checkpoint_and_the_same_command_continues_exactly",
+    ),
+    (
+        "the next trainable starts after train.max_seconds stopped one",
+        "lagfluid/train.py",
+        'if summaries[-1].get("stopped"):',
+        "if False:",
+        "tests/test_train.py::test_max_seconds_stops_after_a_checkpoint_and_the_same_command_continues_exactly",
+    ),
+    (
+        "gpu_train.sh brings back the checkpoints with their optimizer state",
+        "benchmarks/gpu_train.sh",
+        "export_weights(run, out, kinds=[kind])",
+        'shutil.copyfile(run / f"{kind}.pt", out / f"{kind}.pt")',
+        "tests/test_gpu_train.py::test_each_network_comes_back_loadable_with_its_loss_log_and_stopped_by_the_cap",
+    ),
+    (
+        "gpu_train.sh overwrites a file of the same name in OUT",
+        "benchmarks/gpu_train.sh",
+        'if [ -e "$out/$name" ]; then',
+        'if [ -e "$out/$name.planted" ]; then',
+        "tests/test_gpu_train.py::test_an_out_that_holds_one_of_its_files_is_refused_untouched",
+    ),
 ]
 
 

@@ -231,3 +231,77 @@ def test_export_to_an_existing_file_is_refused_before_the_training(tiny_data, tm
         train(cfg)
     assert not (tmp_path / "run" / "line.pt").exists()  # refused before the training, not after it
     assert a_file.read_text() == "mine"
+
+
+def _two_lines(monkeypatch):
+    """Model fgn trains two toy trainables, ``a`` then ``b``."""
+    monkeypatch.setitem(
+        registry._REGISTERED_TRAINABLES, "fgn", lambda cfg: {"a": LinearFit("a"), "b": LinearFit("b")}
+    )
+    return [
+        "task=train",
+        "model=fgn",
+        "data=tiny",
+        "progress=false",
+        "+train.iterations.a=5",
+        "+train.iterations.b=2",
+        "+train.batch_size.a=2",
+        "+train.batch_size.b=2",
+        "train.log_every=2",
+        "train.valid_every=2",
+        "train.checkpoint_every=3",
+    ]
+
+
+def _logged(path):
+    with path.open() as f:  # every column but the wall time
+        return [[r["iteration"], r["lr"], r["train_loss"], r["valid_loss"]] for r in csv.DictReader(f)]
+
+
+def test_max_seconds_stops_after_a_checkpoint_and_the_same_command_continues_exactly(
+    tiny_data, tmp_path, monkeypatch
+):
+    common = [*_two_lines(monkeypatch), f"data.out_dir={tiny_data}"]
+    train(_compose(*common, f"out_dir={tmp_path / 'straight'}"))
+    # a cap shorter than any iteration: each run trains one iteration, checkpoints it and stops
+    capped = [*common, f"out_dir={tmp_path / 'capped'}", "train.max_seconds=1e-9"]
+    capped.append(f"export_to={tmp_path / 'x'}")
+    steps = []
+    for call in range(1, 7):
+        summaries = train(_compose(*capped))
+        steps.append([(s["kind"], s["step"], s["stopped"]) for s in summaries])
+        assert (tmp_path / "x" / "a.pt").exists() == (call == 6)  # the export waits for the end
+    assert steps == [
+        *([("a", k, True)] for k in range(1, 5)),
+        [("a", 5, False), ("b", 1, True)],  # b waits for a's end, then gets its own iteration
+        [("a", 5, False), ("b", 2, False)],  # a finished: skipped
+    ]
+    for name in ("a", "b"):
+        runs = [read_checkpoint(tmp_path / run / f"{name}.pt") for run in ("straight", "capped")]
+        assert runs[0]["step"] == runs[1]["step"] and runs[1]["step"] == {"a": 5, "b": 2}[name]
+        for key, value in runs[0]["state_dict"].items():
+            assert torch.equal(value, runs[1]["state_dict"][key]), key
+        assert _logged(tmp_path / "capped" / f"{name}_loss.csv") == _logged(
+            tmp_path / "straight" / f"{name}_loss.csv"
+        )
+
+
+@pytest.mark.parametrize("value", [0, -3, "abc", True, float("inf")])
+def test_a_max_seconds_that_is_not_a_positive_number_is_refused_naming_it(
+    tiny_data, tmp_path, monkeypatch, value
+):
+    cfg = _compose(*_two_lines(monkeypatch), f"data.out_dir={tiny_data}", f"out_dir={tmp_path}")
+    cfg.train.max_seconds = value
+    with pytest.raises(ConfigError, match=r"^train.max_seconds must be a number of seconds > 0 .*got "):
+        train(cfg)
+    assert not any(tmp_path.iterdir())
+
+
+def test_max_seconds_with_onpolicy_rounds_is_refused_before_any_training(tiny_data, tmp_path, monkeypatch):
+    cfg = _compose(
+        *_two_lines(monkeypatch), "scene=random", f"data.out_dir={tiny_data}", f"out_dir={tmp_path}",
+        "train.onpolicy.rounds=1", "train.onpolicy.trainables=[a]", "train.max_seconds=60",
+    )  # fmt: skip
+    with pytest.raises(ConfigError, match=r"train.max_seconds=60 caps the one-step training, not .*rounds=1"):
+        train(cfg)
+    assert not any(tmp_path.iterdir())
