@@ -100,12 +100,15 @@ class OnPolicy:
         )
 
 
-def round_dir(out_dir: Path, k: int) -> Path:
-    """Round ``k``'s folder (its data and networks); round 0 is ``out_dir`` itself."""
-    return out_dir if k == 0 else out_dir / "onpolicy" / f"round{k}"
+def round_dir(out_dir: Path, k: int, folder: str = "onpolicy") -> Path:
+    """Round ``k``'s folder (its data and networks); round 0 is ``out_dir`` itself.
+
+    ``folder``: the rounds' folder in ``out_dir`` (``dagger`` for :mod:`lagfluid.dagger_rounds`).
+    """
+    return out_dir if k == 0 else out_dir / folder / f"round{k}"
 
 
-def _policy_data_config(cfg: DictConfig, policy_dir: Path | None, data_dir: Path) -> DictConfig:
+def dataset_generate_config(cfg: DictConfig, policy_dir: Path | None, data_dir: Path) -> DictConfig:
     """``cfg`` as the ``task=generate`` of the training dataset's scenes (``policy_dir``: its networks).
 
     ``policy_dir=None``: the dataset itself (moved by the solver), to check that this config makes it.
@@ -125,10 +128,22 @@ def _policy_data_config(cfg: DictConfig, policy_dir: Path | None, data_dir: Path
     return gen
 
 
-def _generate_round(gen: DictConfig, jobs: int) -> None:
-    """``task=generate`` of ``gen``: with ``jobs`` > 1 its scenes first, one one-thread process each."""
+def generate_scenes(
+    gen: DictConfig, jobs: int, make: Callable[[DictConfig], Any] | None = None, scenes: Sequence[int] = ()
+) -> None:
+    """``make(gen)``: with ``jobs`` > 1 its scenes first, one one-thread process each.
+
+    Args:
+        gen: the generation config (``data.scene_index`` set per job).
+        jobs: processes at once.
+        make: the generation task (default :func:`lagfluid.generate.generate`; a DAgger dataset's:
+            :func:`lagfluid.generate.expert.generate_expert`).
+        scenes: the scene indices ``make`` generates (default: all ``gen.num_scenes``).
+    """
     from lagfluid.generate import generate
 
+    make = make or generate
+    scenes = list(scenes) or list(range(int(gen.num_scenes)))
     if jobs > 1:
         from joblib import Parallel, delayed, parallel_config
 
@@ -138,16 +153,16 @@ def _generate_round(gen: DictConfig, jobs: int) -> None:
             return OmegaConf.create(plain)
 
         # inner_max_num_threads: OMP_NUM_THREADS=1 in each worker, so no OpenMP thread spins beside it
-        log.info("%d scenes, %d at a time (joblib reports each on stderr)", int(gen.num_scenes), jobs)
+        log.info("%d scenes, %d at a time (joblib reports each on stderr)", len(scenes), jobs)
         with parallel_config(backend="loky", inner_max_num_threads=1):
-            Parallel(n_jobs=jobs, verbose=10)(
-                delayed(generate)(one_scene(k)) for k in range(int(gen.num_scenes))
-            )
-    generate(gen)  # what no job made (none, unless one failed), then metadata.json
+            Parallel(n_jobs=jobs, verbose=10)(delayed(make)(one_scene(k)) for k in scenes)
+    make(gen)  # what no job made (none, unless one failed), then metadata.json
 
 
-def check_same_scenes(cfg: DictConfig) -> None:
+def check_same_scenes(cfg: DictConfig, option: str = "train.onpolicy.rounds") -> None:
     """Refuse a command that would not regenerate the training dataset's own scenes.
+
+    ``option``: the rounds' key, for the message (``train.dagger.rounds``).
 
     Raises:
         ConfigError: a scene of ``data.out_dir`` was made with other settings than this command's
@@ -157,7 +172,7 @@ def check_same_scenes(cfg: DictConfig) -> None:
     from lagfluid.generate.spec import DataSpec
 
     data_dir = Path(str(cfg.data.out_dir))
-    spec = DataSpec.from_config(_policy_data_config(cfg, None, data_dir))
+    spec = DataSpec.from_config(dataset_generate_config(cfg, None, data_dir))
     for k in range(spec.num_scenes):
         try:
             same = scene_done(scene_path(data_dir, k), spec.fingerprint(k))
@@ -166,7 +181,7 @@ def check_same_scenes(cfg: DictConfig) -> None:
         if not same:
             builder = load_metadata(data_dir).get("scene", {}).get("builder", "?")
             raise ConfigError(
-                f"train.onpolicy.rounds regenerates the scenes of {data_dir} moved by the model, but this "
+                f"{option} regenerates the scenes of {data_dir} moved by the model, but this "
                 f"command does not make scene {k} as it was made (scene={cfg.scene.name}; the dataset's is "
                 f"scene={builder}); give the settings the dataset was generated with"
             )
@@ -212,7 +227,7 @@ def run_rounds(
             previous,
             data_dir,
         )
-        _generate_round(_policy_data_config(cfg, previous, data_dir), settings.jobs)
+        generate_scenes(dataset_generate_config(cfg, previous, data_dir), settings.jobs)
         tuned = copy.deepcopy(cfg)
         with open_dict(tuned):
             tuned.data.out_dir = str(data_dir)

@@ -37,6 +37,12 @@ it, exactly as above.
 labelled by the exact solver (DAgger; :mod:`lagfluid.onpolicy_rounds`); the last round's folder holds the
 run's final networks.
 
+**DAgger rounds for end-to-end models.** ``train.dagger.rounds=R`` (GNS: ``train=gns_dagger``) then rolls
+the model out on the training scenes, labels its own states by one MPS model step and fine-tunes it on the
+original data and rounds 1..k's together, R times (:mod:`lagfluid.dagger_rounds`); with
+``train.dagger.start_from=DIR`` the rounds start from those weights and nothing is trained in ``out_dir``
+first.
+
 **Export.** With ``export_to=DIR`` the trained networks are copied into ``DIR`` once every trainable of the
 run has finished (with rounds: the last round's), without optimizer and RNG state
 (:func:`lagfluid.models.checkpoint.export_weights`; the ``retrain_*`` experiments set it to the shipped
@@ -66,6 +72,7 @@ from torch_geometric.loader import DataLoader
 import lagfluid
 from lagfluid import distributed
 from lagfluid.config import apply_threads, run_device
+from lagfluid.dagger_rounds import DAgger, run_dagger
 from lagfluid.data.datasets import load_metadata
 from lagfluid.errors import ConfigError, LagfluidError
 from lagfluid.locks import hold_outputs
@@ -511,21 +518,30 @@ def train(cfg: DictConfig) -> list[dict[str, Any]]:
     names = list(trainables) if stage == "all" else [stage]
     onpolicy = OnPolicy.from_config(cfg, list(trainables))
     with_rounds = onpolicy.rounds > 0 and (stage == "all" or stage in onpolicy.trainables)
-    if with_rounds and distributed.world()[1] > 1:
+    dagger = DAgger.from_config(cfg)
+    if dagger.rounds and onpolicy.rounds:
         raise ConfigError(
-            "train.onpolicy.rounds under torchrun: the rounds generate data in one process; run them without "
-            "torchrun (train.onpolicy.rounds=0 for the data-parallel part)"
+            "train.dagger.rounds and train.onpolicy.rounds are both set: DAgger rounds are for end-to-end "
+            "models, on-policy rounds for split-step ones; set one of them to 0"
+        )
+    with_rounds = with_rounds or dagger.rounds > 0
+    if with_rounds and distributed.world()[1] > 1:
+        key = "train.dagger.rounds" if dagger.rounds else "train.onpolicy.rounds"
+        raise ConfigError(
+            f"{key} under torchrun: the rounds generate data in one process; run them without "
+            f"torchrun ({key}=0 for the data-parallel part)"
         )
     cap = max_seconds(cfg)
     if cap is not None and with_rounds:  # the rounds' own trainings would run past the cap
         raise ConfigError(
-            f"train.max_seconds={cap:g} caps the one-step training, not train.onpolicy.rounds="
-            f"{onpolicy.rounds}; set train.max_seconds=null or train.onpolicy.rounds=0"
+            f"train.max_seconds={cap:g} caps the one-step training, not the rounds (train.onpolicy.rounds="
+            f"{onpolicy.rounds}, train.dagger.rounds={dagger.rounds}); set train.max_seconds=null or the "
+            "rounds to 0"
         )
     if cap is not None and distributed.world()[1] > 1:  # each rank's clock would stop it at its own iteration
         raise ConfigError(f"train.max_seconds={cap:g} under torchrun: not supported; run without it")
     if with_rounds:  # a command that cannot remake the dataset's scenes fails now, not after the training
-        check_same_scenes(cfg)
+        check_same_scenes(cfg, "train.dagger.rounds" if dagger.rounds else "train.onpolicy.rounds")
     if cfg.get("export_to") and distributed.is_main():  # before the training, not after it
         check_export_to(cfg.export_to)
     apply_threads(cfg)
@@ -535,7 +551,7 @@ def train(cfg: DictConfig) -> list[dict[str, Any]]:
     locks = hold_outputs(out_dir, "train", names) if distributed.is_main() else contextlib.nullcontext()
     deadline = None if cap is None else start + cap
     with locks:
-        return _train_in(cfg, trainables, names, onpolicy, with_rounds, out_dir, deadline)
+        return _train_in(cfg, trainables, names, onpolicy, dagger, with_rounds, out_dir, deadline)
 
 
 def _train_in(
@@ -543,6 +559,7 @@ def _train_in(
     trainables: dict[str, Trainable],
     names: list[str],
     onpolicy: OnPolicy,
+    dagger: DAgger,
     with_rounds: bool,
     out_dir: Path,
     deadline: float | None = None,
@@ -550,13 +567,17 @@ def _train_in(
     """The training of :func:`train` once its trainables' files in ``out_dir`` are locked."""
     out_dir.mkdir(parents=True, exist_ok=True)
     summaries = []
-    for name in names:
+    from_elsewhere = dagger.rounds > 0 and dagger.start_from is not None  # the rounds start from those
+    for name in [] if from_elsewhere else names:
         summaries.append(train_one(cfg, trainables[name], out_dir, deadline))
         if summaries[-1].get("stopped"):  # the cap is the run's: the later trainables and the export wait
             return summaries
     sources = dict.fromkeys(names, out_dir)  # where each trained network ends up
     if with_rounds:
-        last_round = run_rounds(cfg, onpolicy, out_dir, train_one)
+        if dagger.rounds:
+            last_round = run_dagger(cfg, dagger, out_dir, train_one)
+        else:
+            last_round = run_rounds(cfg, onpolicy, out_dir, train_one)
         sources = {name: last_round for name in names}
     export_to = cfg.get("export_to")
     if export_to and distributed.is_main():

@@ -1,4 +1,4 @@
-"""``benchmarks/gpu_train.sh``'s CPU dry run: the GPU script's commands end to end at tiny sizes (under a minute).
+"""``benchmarks/gpu_train.sh``'s CPU dry run: the GPU script's commands end to end at tiny sizes (< 1 min).
 
 What a GPU lease brings back must be there and usable: both networks load as simulators, both loss logs have
 rows, provenance names the commands; each training was stopped by ``train.max_seconds`` (its profile's

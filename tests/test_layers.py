@@ -36,6 +36,8 @@ LAYERS: dict[str, tuple[str, ...]] = {
         "lagfluid.train",
         "lagfluid.train.*",
         "lagfluid.onpolicy_rounds",  # task=train's DAgger rounds (generate, then fine-tune)
+        "lagfluid.dagger_rounds",  # task=train's DAgger rounds of end-to-end models
+        "lagfluid.dagger_eval",  # their per-round dam rollout
         "lagfluid.evaluate*",
         "lagfluid.tables*",
         "lagfluid.export",

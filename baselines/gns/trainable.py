@@ -33,7 +33,7 @@ from omegaconf import OmegaConf
 from torch import Tensor, nn
 from torch_geometric.data import Batch, Data
 
-from lagfluid.data.datasets import TrajectoryWindows
+from lagfluid.data.expert_windows import trajectory_windows
 from lagfluid.data.symmetry import HorizontalSymmetry
 from lagfluid.errors import ConfigError, LagfluidError
 from lagfluid.integrate import acceleration_from_positions, semi_implicit_euler
@@ -158,11 +158,15 @@ class GNSTrainable:
 
     # ------------------------------------------------------------------------ Trainable
     def datasets(self, data_dir: Path) -> tuple[Any, Any]:
-        """Windows of ``H + K`` earlier frames from the train and valid splits."""
+        """Windows of ``H + K`` earlier frames from the train and valid splits.
+
+        A DAgger dataset (``train.dagger``) gives the model's own frames and MPS's next positions
+        (:class:`~lagfluid.data.expert_windows.ExpertWindows`), items of the same fields.
+        """
         frames = self.history + max(self.unrolls)
         return (
-            TrajectoryWindows(data_dir, "train", history=frames),
-            TrajectoryWindows(data_dir, "valid", history=frames),
+            trajectory_windows(data_dir, "train", history=frames),
+            trajectory_windows(data_dir, "valid", history=frames),
         )
 
     def build_network(self) -> nn.Module:

@@ -30,7 +30,7 @@ from lagfluid.physics.stages import SolverSettings
 log = logging.getLogger(__name__)
 
 
-def _write_json(path: Path, content: dict[str, Any]) -> None:
+def write_json_atomic(path: Path, content: dict[str, Any]) -> None:
     """Write atomically: a per-process temporary file, then rename (parallel jobs may race here)."""
     tmp = path.with_name(f"{path.name}.{os.getpid()}.part")
     tmp.write_text(json.dumps(content, indent=2))
@@ -127,5 +127,5 @@ def write_metadata(spec: DataSpec, generation_seconds: float | None = None) -> d
         "generation_time_s": sum(seconds),
         "generation_run_time_s": generation_seconds,
     }
-    _write_json(spec.out_dir / METADATA_FILE, meta)
+    write_json_atomic(spec.out_dir / METADATA_FILE, meta)
     return meta

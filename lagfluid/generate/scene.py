@@ -33,8 +33,10 @@ from lagfluid.state import ParticleState
 log = logging.getLogger(__name__)
 
 
-def scene_done(path: Path, fingerprint: str) -> bool:
+def scene_done(path: Path, fingerprint: str, samples: bool = True) -> bool:
     """True for a finished scene file made with ``fingerprint``; False when it must be (re)generated.
+
+    ``samples=False``: a scene without the stage samples (a DAgger scene, :mod:`lagfluid.generate.expert`).
 
     Raises:
         LagfluidError: a finished file made with another configuration.
@@ -42,7 +44,7 @@ def scene_done(path: Path, fingerprint: str) -> bool:
     if not path.exists():
         return False
     try:
-        info = read_scene_info(path)
+        info = read_scene_info(path, samples=samples)
     except TrajectoryFileError as err:
         log.warning("%s; regenerating it", err)
         return False

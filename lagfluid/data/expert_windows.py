@@ -1,0 +1,123 @@
+"""DAgger datasets of end-to-end models: the model's own trajectory, labelled by one MPS step from its states.
+
+An end-to-end model (GNS) trained on MPS's trajectories meets, in its own rollouts, states MPS never visits
+(fluid drifting into a wall) and extrapolates there. A DAgger dataset (Ross, Gordon and Bagnell 2011;
+written by :mod:`lagfluid.generate.expert`) rolls the model out on the training scenes and, every
+``every``-th frame the model made, lets the MPS solver advance one model step (``substeps`` solver steps)
+from the model's positions ``x_t`` and the velocity its frames imply, ``v_t = (x_t - x_{t-1}) / frame_dt``.
+Trained on ``(model's frames ..., x_t) -> x_{t+1}^MPS``, the integrator's inverse (GNS:
+:func:`lagfluid.integrate.acceleration_from_positions`) turns MPS's answer into the acceleration that
+brings the model back to where MPS would go, from the model's own history.
+
+Layout (a trajectory dataset, ``metadata.json`` with ``samples: false``): each scene file holds the model's
+frames as the trajectory group of :mod:`lagfluid.data.layout` (attrs ``dt`` the solver's step,
+``sample_every`` the solver steps per model step, so ``frame_dt = dt * sample_every`` as in the training
+data) and ::
+
+    /expert                 one label per labelled frame (E of them)
+        frame (E,) i8                trajectory frame t whose state MPS advanced
+        position (E, Nf, 3)          MPS's fluid positions one model step later (the label)
+        velocity (E, Nf, 3)          MPS's fluid velocities then
+        attrs: format_version, every, substeps, solver_dt, complete
+
+and the metadata says whose is what: ``trajectory: model``, ``labels: mps``, ``policy`` (the model and a
+hash of its weights), ``expert`` (``every``, ``substeps``). Only the training split's scenes are rolled out.
+
+Models read it through :func:`trajectory_windows`, which gives a solver dataset's
+:class:`~lagfluid.data.datasets.TrajectoryWindows` and a DAgger dataset's :class:`ExpertWindows`, whose items
+have the same fields (so a trainable needs no other change, and ``train.extra_data`` mixes the two).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any, Literal
+
+import h5py
+import numpy as np
+import torch
+from torch_geometric.data import Data
+
+from lagfluid.data.datasets import TrajectoryWindows, _with_boundary
+from lagfluid.data.layout import GROUP, SceneInfo, load_metadata
+from lagfluid.data.store import TrajectoryFileError
+from lagfluid.errors import LagfluidError
+
+EXPERT = "expert"
+"""The group of a DAgger scene file that holds the expert's labels."""
+EXPERT_FORMAT_VERSION = 1
+LABELS = "mps"
+"""``metadata.json["labels"]`` of a DAgger dataset: who labelled the model's states."""
+
+
+def is_expert_dataset(meta: dict[str, Any]) -> bool:
+    """Whether a dataset's metadata is a DAgger dataset's (model's trajectory, expert labels)."""
+    return meta.get("labels") == LABELS and EXPERT in meta
+
+
+class ExpertWindows(TrajectoryWindows):
+    """Windows of a DAgger dataset: the model's frames before a labelled frame, and MPS's next positions.
+
+    Item ``(scene, e)`` for each label ``e`` at frame ``t >= history``: ``pos`` (N, 3) the model's frame t
+    with the boundary, ``ptype`` (N,), ``history`` (Nf, H, 3) the model's frames t-H .. t-1, ``y`` (Nf, 3)
+    MPS's fluid positions one model step after frame t; graph-level ``frame_dt``, ``step``, ``bounds`` and
+    the scene fields, as :class:`~lagfluid.data.datasets.TrajectoryWindows`.
+
+    Raises:
+        LagfluidError: the dataset is not a DAgger dataset.
+        TrajectoryFileError: a scene file without a complete ``/expert`` group.
+    """
+
+    solver_trajectories_only = False  # the trajectory is the model's: that is the point
+
+    def __init__(
+        self,
+        root: str | os.PathLike,
+        split: str | None = "train",
+        transform: Any = None,
+        boundary_radius: float | Literal["default"] | None = "default",
+        history: int = 5,
+    ) -> None:
+        if not is_expert_dataset(load_metadata(root)):
+            raise LagfluidError(
+                f"{root} is not a DAgger dataset (metadata without labels: {LABELS} and {EXPERT}); "
+                "TrajectoryWindows reads the solver's trajectories"
+            )
+        self._labels: dict[Path, np.ndarray] = {}  # scene file -> frames of its usable labels
+        super().__init__(root, split, transform, boundary_radius, history)
+
+    def _count(self, info: SceneInfo) -> int:
+        with h5py.File(info.path, "r") as f:
+            group = f.get(EXPERT)
+            if group is None or not bool(group.attrs.get("complete", False)):
+                raise TrajectoryFileError(f"{info.path} has no complete '/{EXPERT}' group of labels")
+            frames = group["frame"][()]
+        # the labels whose window has `history` frames before it
+        self._labels[info.path] = np.flatnonzero((frames >= self.history) & (frames < info.frames))
+        return len(self._labels[info.path])
+
+    def _item(self, file: int, local: int) -> Data:
+        f = self._h5(file)
+        g, labels = f[GROUP], f[EXPERT]
+        row = int(self._labels[self.files[file]][local])
+        t = int(labels["frame"][row])
+        window = g["position"][t - self.history : t + 1]  # the model's frames t-H .. t
+        b_pos, b_type = self._near_boundary(file, window[-1])
+        a = self.infos[file].attrs
+        every = int(a["sample_every"])
+        return Data(
+            **_with_boundary(window[-1], None, b_pos, b_type),
+            history=torch.from_numpy(np.ascontiguousarray(window[:-1].transpose(1, 0, 2))),
+            y=torch.from_numpy(labels["position"][row]),
+            frame_dt=torch.tensor([float(a["dt"]) * every], dtype=torch.float32),
+            step=torch.tensor([t * every]),
+            **self._bounds(file),
+            **self._scene_fields(file),
+        )
+
+
+def trajectory_windows(root: str | os.PathLike, split: str | None, history: int) -> TrajectoryWindows:
+    """The windows of ``root``: :class:`ExpertWindows` for a DAgger dataset, else ``TrajectoryWindows``."""
+    cls = ExpertWindows if is_expert_dataset(load_metadata(root)) else TrajectoryWindows
+    return cls(root, split, history=history)
