@@ -157,6 +157,9 @@ def main(argv: list[str] | None = None) -> None:
     load = os.getloadavg()[0]
     state = sheet_state()
     graph = build_graph(state[0], state[1], RADIUS * state[4])
+    # again: the first Numba kernel of the radius search starts its OpenMP team with every core, which
+    # resets torch's thread count too (torch.get_num_threads() 1 -> 2 on this machine)
+    torch.set_num_threads(args.threads)
     cpu, paper = SIZES
     rows = time_pairs(cpu, args.pairs, state) + time_pairs(paper, args.paper_pairs, state)
     intro = (
@@ -173,6 +176,8 @@ def main(argv: list[str] | None = None) -> None:
         "(load average below), so absolute times are upper bounds and vary from pair to pair; the pairs' "
         "ratios are the comparison." + (f" {args.note}" if args.note else "") + "\n\nPer pair:"
     )
+    if torch.get_num_threads() != args.threads:
+        raise RuntimeError(f"torch ran {torch.get_num_threads()} threads, not --threads {args.threads}")
     prov = provenance("benchmarks.gns_edge_layer", load, threads=str(args.threads))
     print(write_results(RESULTS, "gns_edge_layer", rows, intro, prov))
 
