@@ -7,7 +7,9 @@ of a (E, 3L) concatenation and a (E, 3L) x (3L, hidden) product (E ~ 30 N). Same
 (``tests/test_gns.py``). This benchmark times one training iteration (graph, forward, backward, Adam) of
 both forms on one scene-sized graph, at the CPU size (``train=gns_cpu``) and the paper's (A.5), alternated
 A B A B at one thread; the concatenated form is :func:`concatenated_edge_update`, patched in by
-:func:`concatenated_first_layer` (everything else is the same code).
+:func:`concatenated_first_layer` (everything else is the same code). The network has applied the layer by
+parts since GNS was added (commit 3819f4e): "before" is the textbook concatenated form, not an older shipped
+version, and no shipped weights or results change.
 
 The graph: a 79 x 27 x 3 l0 sheet of fluid (6,399 particles) on the floor of the paper's 80 x 80 x 40 l0
 random-scene tank, jittered by 0.15 l0 (Gaussian, seeded): 5,223 boundary nodes within reach and 196,695
