@@ -591,6 +591,35 @@ PLANTS = [
         "    for name in [] if False else names:",
         "tests/test_dagger.py::test_start_from_skips_the_one_step_training_and_every_k_labels_every_kth_own_frame",
     ),
+    # GNS's first edge layer applied by parts (issue 35, item 3): the same function as the concatenated form
+    (
+        "GNS edge layer: the receiver's projection gathered by the sender",
+        "baselines/gns/network.py",
+        "receiver = F.linear(x, w[:, L : 2 * L]).index_select(0, edge_index[1])",
+        "receiver = F.linear(x, w[:, L : 2 * L]).index_select(0, edge_index[0])",
+        "tests/test_gns.py::test_the_shipped_weights_roll_out_the_same_with_the_concatenated_edge_layer",
+    ),
+    (
+        "GNS edge layer: the sender projected by the receiver's column block",
+        "baselines/gns/network.py",
+        "sender = F.linear(x, w[:, 2 * L :])",
+        "sender = F.linear(x, w[:, L : 2 * L])",
+        "tests/test_gns.py::test_edge_update_applied_by_parts_is_the_concatenated_mlp_in_value_and_gradient",
+    ),
+    (
+        "GNS edge layer: the first layer's bias left out",
+        "baselines/gns/network.py",
+        "F.linear(e, w[:, :L], first.bias)",
+        "F.linear(e, w[:, :L])",
+        "tests/test_gns.py::test_edge_update_by_parts_in_float32_is_the_concatenated_form_to_rounding",
+    ),
+    (
+        "GNS edge layer: no gradient reaches the receiver's column block (same forward)",
+        "baselines/gns/network.py",
+        "receiver = F.linear(x, w[:, L : 2 * L])",
+        "receiver = F.linear(x, w[:, L : 2 * L].detach())",
+        "tests/test_gns.py::test_the_networks_loss_gradients_by_parts_equal_the_concatenated_forms",
+    ),
 ]
 
 

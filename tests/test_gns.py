@@ -1,6 +1,7 @@
 """GNS (baselines/gns): architecture, invariances, batching, the noise and target bookkeeping, the simulator's
 state handling, training and the plugin path (seconds)."""
 
+from contextlib import nullcontext
 from importlib import metadata
 
 import h5py
@@ -15,6 +16,7 @@ from baselines.gns.graph import bounds_features, build_graph
 from baselines.gns.network import GNSNet, InteractionNetwork
 from baselines.gns.simulator import SHIPPED, GNSSimulator, build_simulator
 from baselines.gns.trainable import GNSTrainable, random_walk_noise, step_acceleration, symmetric_batch
+from benchmarks.gns_edge_layer import concatenated_first_layer
 from lagfluid.config import at_simulator_time_step, build_initial_state, initial_history, run_guard
 from lagfluid.data.symmetry import HorizontalSymmetry
 from lagfluid.errors import LagfluidError, RolloutError
@@ -84,18 +86,86 @@ def test_paper_size_has_deepminds_parameter_count():
     assert sum(p.numel() for p in GNSNet(type_embedding=16).parameters()) == count + 15 * 128 + 2 * 16
 
 
-def test_edge_update_applied_by_parts_is_the_concatenated_mlp():
-    torch.manual_seed(0)
-    block = InteractionNetwork(latent=8, hidden=12, mlp_layers=2).double()
-    x, e = torch.randn(6, 8, dtype=torch.float64), torch.randn(10, 8, dtype=torch.float64)
-    edge_index = torch.randint(0, 6, (2, 10))
+def _block_and_graph(dtype, n=40, edges=1200, latent=16, hidden=24, seed=0):
+    """A random block (non-zero biases, LayerNorm affine) and a random graph of ``n`` nodes in ``dtype``."""
+    torch.manual_seed(seed)
+    block = InteractionNetwork(latent=latent, hidden=hidden, mlp_layers=2).to(dtype)
+    with torch.no_grad():
+        for p in block.parameters():
+            p.add_(0.1 * torch.randn_like(p))  # LayerNorm's weight 1 and bias 0 are not generic
+    x, e = torch.randn(n, latent, dtype=dtype), torch.randn(edges, latent, dtype=dtype)
+    return block, x, e, torch.randint(0, n, (2, edges))
+
+
+def _block_outputs_and_grads(block, x, e, edge_index, concatenated):
+    """The block's (x', e') and the gradients of a fixed projection of them wrt parameters, x and e."""
+    x, e = x.clone().requires_grad_(), e.clone().requires_grad_()
+    block.zero_grad(set_to_none=True)
+    with concatenated_first_layer() if concatenated else nullcontext():
+        x_new, e_new = block(x, edge_index, e)
+    g = torch.Generator().manual_seed(1)  # drawn in float64 whatever the dtype: the same numbers
+    loss = (x_new * torch.randn(x_new.shape, generator=g, dtype=torch.float64).to(x_new)).sum()
+    loss = loss + (e_new * torch.randn(e_new.shape, generator=g, dtype=torch.float64).to(e_new)).sum()
+    loss.backward()
+    grads = {name: p.grad.clone() for name, p in block.named_parameters()}
+    return (x_new.detach(), e_new.detach()), {**grads, "x": x.grad, "e": e.grad}
+
+
+def test_edge_update_applied_by_parts_is_the_concatenated_mlp_in_value_and_gradient():
+    # float64: the two forms differ only in the order of the first layer's sums (3 partial dot products
+    # and the bias, against one of 3L terms): ~1e-15 here, far below 1e-12
+    block, x, e, edge_index = _block_and_graph(torch.float64)
     by_parts = block.edge_update(e, edge_index, x)
     full = block.edge_mlp(torch.cat([e, x[edge_index[1]], x[edge_index[0]]], dim=1))
-    torch.testing.assert_close(by_parts, full)
-    x_new, e_new = block(x, edge_index, e)
-    summed = torch.zeros(6, 8, dtype=torch.float64).index_add_(0, edge_index[1], full)
-    torch.testing.assert_close(x_new, x + block.node_mlp(torch.cat([x, summed], 1)))
-    torch.testing.assert_close(e_new, e + full)
+    torch.testing.assert_close(by_parts, full, rtol=0, atol=1e-12)
+    (x_new, e_new), grads = _block_outputs_and_grads(block, x, e, edge_index, concatenated=False)
+    summed = torch.zeros_like(x).index_add_(0, edge_index[1], full)
+    torch.testing.assert_close(x_new, x + block.node_mlp(torch.cat([x, summed], 1)), rtol=0, atol=1e-12)
+    torch.testing.assert_close(e_new, e + full, rtol=0, atol=1e-12)
+    # gradients (training differentiates the by-parts form): every parameter's, the first layer's weight by
+    # column block included, and the inputs'
+    _, reference = _block_outputs_and_grads(block, x, e, edge_index, concatenated=True)
+    assert grads.keys() == reference.keys() and "edge_mlp.0.weight" in grads
+    for name, grad in grads.items():
+        torch.testing.assert_close(grad, reference[name], rtol=0, atol=1e-12, msg=name)
+
+
+def test_edge_update_by_parts_in_float32_is_the_concatenated_form_to_rounding():
+    # float32: the forms round differently. Per output and gradient: they agree to 16 ulps of its largest
+    # entry (measured: <= 8, sums over 1,200 edges in the gradients), and the by-parts form is as close to
+    # the float64 value as the concatenated one (within 3x; measured <= 1.8x): rounding, not a change
+    block, x, e, edge_index = _block_and_graph(torch.float64)
+    exact = _block_outputs_and_grads(block, x, e, edge_index, concatenated=True)
+    block.float()
+    x, e = x.float(), e.float()
+    by_parts = _block_outputs_and_grads(block, x, e, edge_index, concatenated=False)
+    reference = _block_outputs_and_grads(block, x, e, edge_index, concatenated=True)
+    flat = lambda r: {"x'": r[0][0], "e'": r[0][1], **r[1]}  # noqa: E731
+    exact, by_parts, reference = flat(exact), flat(by_parts), flat(reference)
+    eps = torch.finfo(torch.float32).eps
+    for name, value in exact.items():
+        scale = float(value.abs().max())
+        difference = float((by_parts[name] - reference[name]).abs().max())
+        assert difference <= 16 * eps * scale, (name, difference, scale)
+        error, ref_error = (float((r[name].double() - value).abs().max()) for r in (by_parts, reference))
+        assert error <= 3 * ref_error, (name, error, ref_error)
+
+
+def test_the_networks_loss_gradients_by_parts_equal_the_concatenated_forms():
+    # the whole training path (graph, 3 blocks, decoder): the same loss and gradients to 1e-12 in float64
+    net = _net().train()
+    pos, fluid, frames, bounds = _scene()
+    results = []
+    for form in (nullcontext(), concatenated_first_layer()):
+        net.zero_grad(set_to_none=True)
+        with form:
+            loss = (_acc(net, pos, fluid, frames, bounds) ** 2).mean()
+        loss.backward()
+        results.append((loss.detach(), {n: p.grad.clone() for n, p in net.named_parameters()}))
+    (loss, grads), (ref_loss, ref_grads) = results
+    torch.testing.assert_close(loss, ref_loss, rtol=0, atol=1e-12)
+    for name, grad in grads.items():
+        torch.testing.assert_close(grad, ref_grads[name], rtol=0, atol=1e-12, msg=name)
 
 
 def test_updated_edge_latents_reach_the_next_block():
@@ -391,6 +461,33 @@ def test_the_shipped_weights_roll_out_finite_and_inside_the_tank():
     final, _ = rollout(sim, state, 20, guard=run_guard(cfg, sim))
     assert bool(torch.isfinite(final.pos).all()) and final.fluid_outside_bounds().numel() == 0
     assert sim.dt == 0.008 and sim.max_courant == 1.0
+
+
+@pytest.mark.skipif(not (SHIPPED / "gns.pt").is_file(), reason="no shipped GNS weights")
+def test_the_shipped_weights_roll_out_the_same_with_the_concatenated_edge_layer():
+    # 3 GNS steps of dam_small after the MPS warm start, by parts and concatenated, from the same state and
+    # history. float32: the first layer's sums are taken in another order, so accelerations differ by
+    # ~1e-6 relative (~1e-9 m of a step's displacement, a dt^2 = 6.4e-5 s^2 factor): positions agree
+    # to their own rounding, an ulp or two (1.2e-7 m at 1 m); atol is 4 ulps of the largest coordinate.
+    cfg = _compose("model=gns", "scene=dam_small", "dt=0.008")
+    sim, state = build_simulator(cfg), build_initial_state(cfg)
+    sim.reset(state)
+    for _ in range(sim.history_length):  # the warm start: MPS frames
+        state = sim.step(state)
+    memory = {k: v.clone() for k, v in sim.rollout_memory().items()}
+    ends = []
+    for form in (nullcontext(), concatenated_first_layer()):
+        sim.restore_rollout_memory(state, memory)
+        end = state
+        with form:
+            for _ in range(3):
+                end = sim.step(end)
+        assert sim.last_step_learned and end.pos.dtype == torch.float32
+        ends.append(end.pos)
+    moved = (ends[0] - state.pos).abs().max()
+    assert moved > 1e-3  # the network's steps moved the fluid (millimetres): compared, not still
+    atol = 4 * torch.finfo(torch.float32).eps * float(ends[1].abs().max())
+    torch.testing.assert_close(ends[0], ends[1], rtol=0, atol=atol)
 
 
 def test_trajectory_windows_carry_the_domain_bounds(tiny_data):
