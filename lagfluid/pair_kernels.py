@@ -105,10 +105,18 @@ def applies(*tensors: Tensor) -> bool:
 
 
 def set_threads() -> None:
-    """Give Numba's parallel loops as many threads as torch (``torch.set_num_threads`` is the one knob)."""
-    import numba
+    """Give Numba's parallel loops as many threads as torch (``torch.set_num_threads`` is the one knob).
 
-    numba.set_num_threads(max(1, min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS)))
+    Numba's OpenMP pool is started here, before a kernel's first parallel loop: started inside that loop it
+    set torch's intra-op threads to every core (``threads=1`` ran on 2 after the first neighbour search).
+    """
+    import numba
+    from numba.np.ufunc import parallel
+
+    threads = torch.get_num_threads()
+    parallel._launch_threads()  # a no-op once started
+    torch.set_num_threads(threads)
+    numba.set_num_threads(max(1, min(threads, numba.config.NUMBA_NUM_THREADS)))
 
 
 def _kernels() -> ModuleType:

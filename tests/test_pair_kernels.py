@@ -1,5 +1,8 @@
 """The compiled pair filters equal the torch path bit for bit; the Verlet list answers the same either way."""
 
+import subprocess
+import sys
+
 import pytest
 import torch
 
@@ -173,3 +176,16 @@ def test_cell_search_pairs_are_sorted_and_exact_whatever_the_particle_numbering(
     want = radius_graph(pos, radius, receivers=is_receiver, backend="brute")
     assert got.shape[1] > 20 * receivers.numel()  # a full neighbourhood each
     assert torch.equal(got, want)  # sorted by target, then source, as every backend
+
+
+def test_the_first_compiled_search_keeps_torchs_thread_count():
+    # Numba's OpenMP pool, started inside a kernel's first parallel loop, set torch to every core: a
+    # threads=1 run (a one-core job of a sweep) then ran on 2. A fresh process: the pool starts once.
+    code = (
+        "import torch; torch.set_num_threads(1)\n"
+        "from lagfluid.neighbors import radius_graph\n"
+        "radius_graph(torch.rand(3000, 3, generator=torch.Generator().manual_seed(0)), 0.08)\n"
+        "print(torch.get_num_threads())\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.split()[-1] == "1"
