@@ -620,6 +620,42 @@ PLANTS = [
         "receiver = F.linear(x, w[:, L : 2 * L].detach())",
         "tests/test_gns.py::test_the_networks_loss_gradients_by_parts_equal_the_concatenated_forms",
     ),
+    # CConv fine-tuned from DeepLagrangianFluids' weights (issue 35, item 2)
+    (
+        "cconv fine-tune: the rollout ignores the checkpoint's axes",
+        "baselines/cconv/simulator.py",
+        '        AXES[view["axes"]],',
+        "        torch.eye(3),",
+        "tests/test_cconv.py::test_a_fine_tuned_checkpoint_rolls_out_as_it_was_trained",
+    ),
+    (
+        "cconv fine-tune: the training leaves the walls' normals unweighted",
+        "baselines/cconv/trainable.py",
+        "        points, normals = points @ rotation.T, self.surface_weight * normals @ rotation.T",
+        "        points, normals = points @ rotation.T, normals @ rotation.T",
+        "tests/test_cconv.py::test_a_fine_tuned_checkpoint_rolls_out_as_it_was_trained",
+    ),
+    (
+        "cconv fine-tune: DLF's 9.81 kept instead of the data's gravity",
+        "baselines/cconv/trainable.py",
+        '        net.gravity.copy_(torch.tensor([float(g) for g in self.options["gravity"]]))',
+        "        pass",
+        "tests/test_cconv.py::test_fine_tuning_starts_from_dlfs_weights_with_the_datas_gravity",
+    ),
+    (
+        "cconv fine-tune: the random turn is about a horizontal axis",
+        "baselines/cconv/trainable.py",
+        "            turn = torch.tensor([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64)",
+        "            turn = torch.tensor([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]], dtype=torch.float64)",
+        "tests/test_cconv.py::test_a_turn_about_gravity_keeps_gravity_and_turns_the_horizontal",
+    ),
+    (
+        "threads: Numba's pool started inside the first kernel (threads=1 runs on every core)",
+        "lagfluid/pair_kernels.py",
+        "    parallel._launch_threads()  # a no-op once started\n    torch.set_num_threads(threads)",
+        "    pass",
+        "tests/test_pair_kernels.py::test_the_first_compiled_search_keeps_torchs_thread_count",
+    ),
 ]
 
 
