@@ -9,9 +9,10 @@ MPS over the frames it stored, and the mean density error beside MPS's.
 Usage::
 
     python -m benchmarks.exact_after [--models gns cconv cconv_original] [--runs-dir runs/exact_after]
+        [--scene dam] [--duration 1.0] [--name exact_after]
 
 One run at a time (``--threads`` each). A row whose folder already holds ``metrics.json`` is read, not run
-again. Writes ``benchmarks/results/exact_after.{md,csv}`` with provenance and each row's command.
+again. Writes ``benchmarks/results/<name>.{md,csv}`` (``exact_after``) with provenance and each row's command.
 """
 
 from __future__ import annotations
@@ -149,6 +150,7 @@ def main(argv: list[str] | None = None) -> None:
         help="a markdown file added under the verdicts (where the runs were made)",
     )
     ap.add_argument("--results", default=str(RESULTS))
+    ap.add_argument("--name", default="exact_after", help="results file name (<name>.md, <name>.csv)")
     args = ap.parse_args(argv)
     load = os.getloadavg()[0]
     rows, verdicts = [], []
@@ -170,7 +172,7 @@ def main(argv: list[str] | None = None) -> None:
         + (f"\n\n{Path(args.note_file).read_text().strip()}" if args.note_file else "")
     )
     prov = provenance("benchmarks.exact_after", load, runs=str(args.runs_dir))
-    print(write_results(Path(args.results), "exact_after", rows, intro, prov))
+    print(write_results(Path(args.results), args.name, rows, intro, prov))
 
 
 if __name__ == "__main__":

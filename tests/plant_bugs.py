@@ -650,6 +650,13 @@ PLANTS = [
         "tests/test_cconv.py::test_a_turn_about_gravity_keeps_gravity_and_turns_the_horizontal",
     ),
     (
+        "cconv fine-tune: validation batches turned at random as training's",
+        "baselines/cconv/trainable.py",
+        "turn=net.training)",
+        "turn=True)",
+        "tests/test_cconv.py::test_a_fine_tuned_checkpoint_rolls_out_as_it_was_trained",
+    ),
+    (
         "threads: Numba's pool started inside the first kernel (threads=1 runs on every core)",
         "lagfluid/pair_kernels.py",
         "    parallel._launch_threads()  # a no-op once started\n    torch.set_num_threads(threads)",

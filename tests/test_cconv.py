@@ -619,6 +619,8 @@ def test_a_turn_about_gravity_keeps_gravity_and_turns_the_horizontal():
     assert not torch.allclose(frames[0], frames[1])  # the horizontal axes turn from batch to batch
     still = CConvTrainable(_compose(*FINETUNE))
     torch.testing.assert_close(still.frame(torch.device("cpu"), torch.float64), Y_UP.double())
+    # validation (turn=False: the network in eval mode) sees the data in the network's axes, unturned
+    torch.testing.assert_close(turning.frame(torch.device("cpu"), torch.float64, turn=False), Y_UP.double())
 
 
 def test_a_fine_tuned_checkpoint_rolls_out_as_it_was_trained(step_data, tmp_path):
@@ -643,8 +645,11 @@ def test_a_fine_tuned_checkpoint_rolls_out_as_it_was_trained(step_data, tmp_path
     whole = StepWindows(step_data, "train", steps=0, frames=1, boundary_radius=None)[1]
     net = sim.net
     batch = Batch.from_data_list([window]).apply(lambda t: t.double() if t.is_floating_point() else t)
+    turning = CConvTrainable(_compose(*overrides, "++train.rotate_about_gravity=true"))
     with torch.no_grad():
         pred, _ = trainable.predict(net, batch)
+        # validation (the network in eval mode) is not turned, however the training's batches are
+        torch.testing.assert_close(turning.predict(net, batch)[0], pred, rtol=0, atol=0)
     params = SceneParams(dt=0.004, l0=float(whole.l0))
     state = ParticleState(whole.pos.double(), whole.vel.double(), whole.ptype, params=params, check=False)
     sim.reset(state)

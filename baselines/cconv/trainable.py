@@ -190,14 +190,15 @@ class CConvTrainable:
             )
         return round(ratio)
 
-    def frame(self, device: torch.device, dtype: torch.dtype) -> Tensor:
+    def frame(self, device: torch.device, dtype: torch.dtype, turn: bool = True) -> Tensor:
         """(3, 3) rotation from the data's axes to the network's for one batch.
 
         ``model.axes``, after a random turn about the vertical (z, the data's gravity axis) when
-        ``train.rotate_about_gravity``: the walls, the fluid and the targets turn together.
+        ``train.rotate_about_gravity`` and ``turn`` (training batches; not validation's): the walls,
+        the fluid and the targets turn together.
         """
         rotation = self.axes.to(dtype=torch.float64)
-        if self.rotate_about_gravity:
+        if self.rotate_about_gravity and turn:
             angle = float(torch.rand(()) * 2 * torch.pi)  # torch's RNG: seeded, and restored on resume
             c, s = (
                 torch.cos(torch.tensor(angle, dtype=torch.float64)),
@@ -221,7 +222,8 @@ class CConvTrainable:
         l0 = _scalar(batch.l0, "l0")
         points, normals, box_batch = self.surface(batch.pos, fluid, sample, l0)
         fluid_batch = sample[fluid]
-        rotation = self.frame(batch.pos.device, batch.pos.dtype)  # data axes -> the network's
+        # data axes -> the network's; a network in eval mode (validation) sees the data unturned
+        rotation = self.frame(batch.pos.device, batch.pos.dtype, turn=net.training)
         points, normals = points @ rotation.T, self.surface_weight * normals @ rotation.T
         pos, vel = batch.pos[fluid] @ rotation.T, batch.vel[fluid] @ rotation.T
         if self.unroll_frames:
