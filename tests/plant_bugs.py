@@ -663,6 +663,49 @@ PLANTS = [
         "    pass",
         "tests/test_pair_kernels.py::test_the_first_compiled_search_keeps_torchs_thread_count",
     ),
+    # benchmarks.unseen_obstacles: scenes no model trained on (issue 35)
+    (
+        "unseen_obstacles: the dam_cone tank lower than its open top (a lid over the fluid)",
+        "benchmarks/unseen_obstacles.py",
+        '"container": _box([0, 0, 0], [2.0, 1.0, 1.8]),',
+        '"container": _box([0, 0, 0], [2.0, 1.0, 1.0]),',
+        "tests/test_unseen_obstacles.py::test_every_scene_is_small_with_obstacles_in_reach_and_no_lid",
+    ),
+    (
+        "unseen_obstacles: the mesh folder's digest ignores the obstacles (a stale MPS reference reused)",
+        "benchmarks/unseen_obstacles.py",
+        'b"".join(blobs[k] for k in sorted(blobs))',
+        'b"".join(blobs[k] for k in ("container", "fluid"))',
+        "tests/test_unseen_obstacles.py::test_mesh_folders_are_named_by_their_geometry",
+    ),
+    (
+        "unseen_obstacles: a derived exact row labelled as the plain model",
+        "benchmarks/unseen_obstacles.py",
+        "label = ExactAfterOptions(collision=True, pressure=True).label(plain.label)",
+        "label = plain.label",
+        "tests/test_unseen_obstacles.py::test_rows_take_the_tables_labels_and_a_missing_one_is_skipped",
+    ),
+    (
+        "unseen_obstacles: missing weights fail the benchmark instead of skipping the row",
+        "benchmarks/unseen_obstacles.py",
+        "    except MissingWeightsError as err:",
+        "    except KeyError as err:",
+        "tests/test_unseen_obstacles.py::test_a_row_whose_weights_are_missing_is_skipped_not_run",
+    ),
+    (
+        "unseen_obstacles: a row with metrics.json is run again",
+        "benchmarks/unseen_obstacles.py",
+        "    if not metrics_path.is_file():\n        print(",
+        "    if True:\n        print(",
+        "tests/test_unseen_obstacles.py::test_a_row_with_metrics_is_read_not_rerun_and_its_columns_are_its_numbers",
+    ),
+    (
+        "unseen_obstacles: the wall approach's second share is below 0.8 l0, not 0.7",
+        "benchmarks/unseen_obstacles.py",
+        "{s['< 0.7 l0']}",
+        "{s['< 0.8 l0']}",
+        "tests/test_unseen_obstacles.py::test_a_row_with_metrics_is_read_not_rerun_and_its_columns_are_its_numbers",
+    ),
 ]
 
 
