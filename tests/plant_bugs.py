@@ -657,6 +657,13 @@ PLANTS = [
         "tests/test_cconv.py::test_a_fine_tuned_checkpoint_rolls_out_as_it_was_trained",
     ),
     (
+        "training range: a recorded range keeps every quantity (GNS/CConv warn about the data's dt)",
+        "lagfluid/models/training_range.py",
+        "        return {key: list(value) for key, value in meta[\"range\"].items() if key in quantities}",
+        "        return dict(meta[\"range\"])",
+        "tests/test_data.py::test_a_recorded_training_range_keeps_only_the_quantities_asked_for",
+    ),
+    (
         "threads: Numba's pool started inside the first kernel (threads=1 runs on every core)",
         "lagfluid/pair_kernels.py",
         "    parallel._launch_threads()  # a no-op once started\n    torch.set_num_threads(threads)",

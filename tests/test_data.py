@@ -502,3 +502,14 @@ def test_generation_killed_by_sigkill_resumes_to_the_uninterrupted_dataset(tmp_p
         for name in ("position", "velocity", "pressure"):
             np.testing.assert_array_equal(a[name], b[name], err_msg=f"scene {k} {name}")
     assert json.loads((killed / "metadata.json").read_text())["statistics"] == meta["statistics"]
+
+
+def test_a_recorded_training_range_keeps_only_the_quantities_asked_for():
+    # GNS and CConv step by their own time (a frame, 20 ms): the data's solver dt in their checkpoint's
+    # range made every rollout warn "trained on dt 0.002 s; this scene has 0.02".
+    from lagfluid.models.training_range import range_from_checkpoint_meta
+
+    meta = {"range": {"dt": [0.002, 0.002], "l0": [0.05, 0.05], "gravity": [9.8065, 9.8065]}}
+    kept = range_from_checkpoint_meta(meta, ("l0", "gravity", "viscosity"))
+    assert kept == {"l0": [0.05, 0.05], "gravity": [9.8065, 9.8065]}
+    assert range_from_checkpoint_meta(meta) == meta["range"]

@@ -322,5 +322,6 @@ def _trained(cfg: Any, name: str, shipped: Path, train_command: str) -> CConvSim
         AXES[view["axes"]],
         view["surface_offset"],
         view["surface_weight"],
-        trained_range=checkpoint_range(path),
+        # not dt: the network steps by its own timestep (a scene's dt is set to it; another one is refused)
+        trained_range=checkpoint_range(path, ("l0", "gravity", "viscosity")),
     )

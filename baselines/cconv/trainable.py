@@ -118,16 +118,17 @@ class CConvTrainable:
 
     # ------------------------------------------------------------------------ Trainable
     def datasets(self, data_dir: Path) -> tuple[Any, Any]:
-        """Windows of a state and its next two solver steps, train and valid splits."""
+        """Windows of a state and its next two solver steps (or frames), train and valid splits."""
+        return self.windows(data_dir, "train"), self.windows(data_dir, "valid")
+
+    def windows(self, data_dir: Path, split: str) -> StepWindows:
+        """The training windows of one split of ``data_dir`` (``train``, ``valid``, ``test``)."""
         # Cropped wider than REACH by the surface test's neighbourhood: a wall particle at the crop's edge
         # looks one-sided, a false surface point inside the wall that rollouts (the whole tank) never see.
         # Measured on data=cpu at a 3.1 l0 crop: 2,096 of a window's 3,989 surface points were such.
         crop = (REACH + SURFACE_RADIUS) * 2 * float(self.options["particle_radius"])
         steps, frames = (0, self.unroll_frames) if self.unroll_frames else (UNROLL, 0)
-        return tuple(
-            StepWindows(data_dir, split, steps=steps, frames=frames, boundary_radius=crop)
-            for split in ("train", "valid")
-        )
+        return StepWindows(data_dir, split, steps=steps, frames=frames, boundary_radius=crop)
 
     def build_network(self) -> nn.Module:
         """A :class:`CConvNet` of the options: fresh, or ``model.start_from``'s weights (module doc).

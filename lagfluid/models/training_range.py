@@ -57,9 +57,13 @@ def training_range(
 def range_from_checkpoint_meta(
     meta: Mapping[str, Any], quantities: Sequence[str] = tuple(UNITS)
 ) -> dict[str, list[float]] | None:
-    """``meta["range"]``, else rebuilt from the run's recorded data folder and identity (None if gone)."""
+    """``meta["range"]``, else rebuilt from the run's recorded data folder and identity (None if gone).
+
+    Only ``quantities`` are kept: a network that steps by its own time (GNS's frame, CConv's 20 ms) was
+    trained on data of another solver dt, which its recorded range holds.
+    """
     if meta.get("range"):
-        return dict(meta["range"])
+        return {key: list(value) for key, value in meta["range"].items() if key in quantities}
     data_dir, identity = meta.get("data_dir"), meta.get("identity")
     if not data_dir or not identity or not (Path(str(data_dir)) / "metadata.json").is_file():
         return None
