@@ -713,6 +713,35 @@ PLANTS = [
         "{s['< 0.8 l0']}",
         "tests/test_unseen_obstacles.py::test_a_row_with_metrics_is_read_not_rerun_and_its_columns_are_its_numbers",
     ),
+    # GNS: the statistics and windows of the training (issue 35, why the trained GNS never completes the dam)
+    (
+        "GNS statistics skip frame t (history, then t+1)",
+        "baselines/gns/trainable.py",
+        "[_trajectory_history(item), item.pos[fluid].unsqueeze(1), item.y.unsqueeze(1)], dim=1",
+        "[_trajectory_history(item), item.y.unsqueeze(1)], dim=1",
+        "tests/test_gns.py::test_the_statistics_are_of_the_frames_the_targets_are_made_of",
+    ),
+    (
+        "GNS statistics count the copies of frame 0 that pad an early window",
+        "baselines/gns/trainable.py",
+        "else item.history[:, item.history.shape[1] - int(before) :]",
+        "else item.history",
+        "tests/test_gns.py::test_the_statistics_are_of_the_frames_the_targets_are_made_of",
+    ),
+    (
+        "GNS windows start at H + K, not at the warm start's H",
+        "baselines/gns/trainable.py",
+        'trajectory_windows(data_dir, "train", history=frames, first=first)',
+        'trajectory_windows(data_dir, "train", history=frames, first=None)',
+        "tests/test_gns.py::test_the_windows_start_at_the_first_frame_a_warm_started_rollout_steps_from",
+    ),
+    (
+        "GNS pushforward unrolls from the copies of frame 0",
+        "baselines/gns/trainable.py",
+        "unroll = min(self._draw_unroll(int(net.trained_batches)), self._most_unroll(batch))",
+        "unroll = self._draw_unroll(int(net.trained_batches))",
+        "tests/test_gns.py::test_the_windows_start_at_the_first_frame_a_warm_started_rollout_steps_from",
+    ),
 ]
 
 

@@ -167,6 +167,10 @@ def test_a_dagger_window_is_the_models_frames_and_its_target_the_inverse_of_mps_
     # a history of 4 frames leaves out the label at frame 3 (only 3 frames before it)
     longer = ExpertWindows(data, "train", history=4)
     assert len(longer) == 3 and torch.equal(longer[0].y, torch.from_numpy(labels[1]))
+    # from frame 2 on it keeps that label: the frame before frame 0 is frame 0's copy (GNS learns from H on)
+    early = ExpertWindows(data, "train", history=4, first=2)
+    assert len(early) == 4 and [int(early[j].frames_before) for j in range(4)] == [3, 4, 4, 4]
+    np.testing.assert_array_equal(early[0].history.numpy(), frames[[0, 0, 1, 2]].transpose(1, 0, 2))
     # the solver-trajectory windows refuse the model's trajectory, and the trainable reads it right
     with pytest.raises(LagfluidError, match="on-policy dataset"):
         TrajectoryWindows(data, "train", history=2)

@@ -361,6 +361,95 @@ def test_a_perfect_predictor_reproduces_the_trajectory(tiny_data):
         torch.testing.assert_close(pos, truth[start + k], atol=1e-6, rtol=0)
 
 
+def _free_fall_item(frames=9, dt=0.008, g=9.81):
+    """A window of a 3 x 3 x 3 block falling from rest (semi-implicit Euler at -g), in float64.
+
+    ``history`` is frames 0 .. frames - 3, ``pos`` frame frames - 2 and ``y`` the last frame, as a
+    :class:`~lagfluid.data.datasets.TrajectoryWindows` item of H + K = frames - 2; no boundary in reach.
+    """
+    dt = float(torch.tensor(dt, dtype=torch.float32))  # the frame spacing as a dataset stores it
+    grid = torch.arange(3, dtype=torch.float64) * L0 + 1.0
+    x = torch.stack(torch.meshgrid(grid, grid, grid, indexing="ij"), -1).reshape(-1, 3)
+    v, acc, path = torch.zeros_like(x), torch.tensor([0.0, 0.0, -g], dtype=torch.float64), [x]
+    for _ in range(frames - 1):
+        x, v = semi_implicit_euler(x, v, acc.expand_as(x), dt)
+        path.append(x)
+    path = torch.stack(path, dim=1)  # (27, frames, 3)
+    return Data(
+        pos=path[:, -2],
+        ptype=torch.full((27,), int(ParticleType.FLUID)),
+        history=path[:, :-2],
+        y=path[:, -1],
+        frame_dt=torch.tensor([dt]),
+        dt=torch.tensor([0.002]),
+        l0=torch.tensor([L0]),
+    )
+
+
+def test_the_statistics_are_of_the_frames_the_targets_are_made_of():
+    """Fitted on free fall, the acceleration mean is -g and its std the noise's: a zero output falls at g.
+
+    The statistics once skipped frame t (history, then t+1): one velocity spanned two frames and the
+    shipped weights' acceleration mean and std became -8.2 and 84 m/s^2 (-2.3 and 73 with frame t).
+    """
+    dt, noise = float(torch.tensor(0.008, dtype=torch.float32)), 0.09
+    trainable = _trainable(noise_std=noise, pushforward={"unrolls": [0, 3], "probs": [1, 1]})
+    net = _net()
+    items = [_free_fall_item(frames) for frames in (9, 12, 15)]
+    stats = trainable.fit_statistics(net, items)
+    torch.testing.assert_close(
+        net.acceleration.mean, torch.tensor([0.0, 0.0, -9.81], dtype=torch.float64), atol=1e-9, rtol=0
+    )
+    noise_acc = noise * L0 / dt**2
+    torch.testing.assert_close(
+        net.acceleration.std, torch.full((3,), noise_acc, dtype=torch.float64), atol=0, rtol=1e-6
+    )
+    speeds = torch.cat(
+        [9.81 * dt * torch.arange(1, f, dtype=torch.float64) for f in (9, 12, 15)]
+    )  # the frames' |v_z|
+    assert stats["velocity_mean"][2] == pytest.approx(-float(speeds.mean()), abs=1e-9)
+    # a window padded with copies of frame 0 (frames_before) counts its trajectory frames only
+    padded = _free_fall_item(9)
+    padded.history = torch.cat([padded.history[:, :1], padded.history[:, :1], padded.history], dim=1)
+    padded.frames_before = torch.tensor([7])
+    assert trainable.fit_statistics(net, [padded]) == trainable.fit_statistics(net, [_free_fall_item(9)])
+    # the window's standardised target is 0: a network whose raw output is 0 steps free fall exactly
+    _, target = trainable.predict(net.eval(), Batch.from_data_list([_free_fall_item(11)]))
+    torch.testing.assert_close(target, torch.zeros_like(target), atol=1e-9, rtol=0)
+
+
+def test_the_windows_start_at_the_first_frame_a_warm_started_rollout_steps_from(tiny_data):
+    """A rollout from rest steps by the network from frame H (after H MPS frames), so training has it.
+
+    The windows once started at H + K (K the longest pushforward unroll): the shipped weights never saw
+    frames 5-7 of a fall and, from the warm start, predicted +0.9 .. -3.2 m/s^2 for a free-falling block.
+    """
+    h, k = SMALL["history"], 3
+    trainable = _trainable(pushforward={"start": 0, "unrolls": [0, 1, 2, 3], "probs": [1, 1, 1, 1]})
+    train, _ = trainable.datasets(tiny_data)
+    scene = tiny_data / train.metadata["splits"]["train"][0]
+    with h5py.File(scene, "r") as f:
+        stored = torch.from_numpy(f["00000/position"][()])
+        every = int(f["00000"].attrs["sample_every"])
+    frames = [int(item.step) // every for item in train]
+    assert frames == list(range(h, stored.shape[0] - 1))  # every frame with H before it and one after
+    first = train[0]
+    assert int(first.frames_before) == h
+    assert torch.equal(first.history[:, k:], stored[:h].transpose(0, 1))
+    assert torch.equal(first.history[:, :k], stored[:1].transpose(0, 1).expand(-1, k, -1))  # frame 0 copies
+    assert torch.equal(first.y, stored[h + 1])
+    assert [int(train[j].frames_before) for j in range(k + 1)] == [h, h + 1, h + 2, h + 3]
+    # an unroll never starts before frame 0: at frame H + 1 a drawn 3 rolls 1 step
+    net = _net(dtype=torch.float32).train()
+    batch = Batch.from_data_list([train[1]])
+    rolled = [
+        _trainable(pushforward={"start": 0, "unrolls": [u], "probs": [1]}).predict(net, batch) for u in (3, 1)
+    ]
+    torch.testing.assert_close(rolled[0], rolled[1], atol=0, rtol=0)
+    plain = _trainable().predict(net, batch)
+    assert not torch.equal(rolled[1][0], plain[0])  # the unroll of 1 did run
+
+
 # ------------------------------------------------------------------------------------------ simulator
 @pytest.fixture(scope="module")
 def tiny_data(tmp_path_factory):

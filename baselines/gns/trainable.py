@@ -1,11 +1,16 @@
 """GNS's one trainable: one-step acceleration of the fluid on windows of the MPS trajectories.
 
 A training item (:class:`~lagfluid.data.datasets.TrajectoryWindows`) is a window of ``H + K + 1`` stored
-frames (``H`` the velocity history, ``K`` the longest pushforward unroll) and the frame after it. Per batch:
+frames (``H`` the velocity history, ``K`` the longest pushforward unroll) and the frame after it, for every
+frame ``t >= H`` of a trajectory: the first ``H`` frames of a rollout from rest are MPS's warm start
+(:mod:`baselines.gns.simulator`), so frame ``H`` is the first the network steps from. Windows of
+``t < H + K`` hold fewer than ``H + K`` trajectory frames (the rest copies of frame 0: ``frames_before``).
+Per batch:
 
 1. **Pushforward** (LagrangeBench; Brandstetter et al. 2022), optional: with probability ``probs[k]`` the
    model first rolls ``k`` steps forward without gradient from the frames ``k`` earlier, so the step that
-   learns starts from the model's own positions, as in a rollout.
+   learns starts from the model's own positions, as in a rollout; ``k`` at most ``frames_before - H`` of
+   every window of the batch (a roll starts from ``H`` frames of the trajectory).
 2. **Noise** (DeepMind): a random walk on the input positions of the fluid, ``noise_std`` (in ``l0``) at the
    last input frame; the target frame is shifted by the last frame's noise, so the target acceleration
    ``(x_{t+1} - 2 x_t + x_{t-1}) / dt^2`` (:func:`lagfluid.integrate.acceleration_from_positions`, the
@@ -17,8 +22,9 @@ symmetries of its tank (:class:`lagfluid.data.symmetry.HorizontalSymmetry`, draw
 equivariant to them, and the data press fluid on some walls far more than on others.
 
 Statistics (:meth:`GNSTrainable.fit_statistics`): mean and std per axis of the finite-difference velocities
-and accelerations of the training frames, std combined with the noise's, ``sqrt(std^2 + noise^2)``
-(DeepMind), stored in the network's buffers with the frame spacing (the model's time step).
+and accelerations of the training frames (of each window: its trajectory frames before t, frame t and the
+next), std combined with the noise's, ``sqrt(std^2 + noise^2)`` (DeepMind), stored in the network's buffers
+with the frame spacing (the model's time step).
 """
 
 from __future__ import annotations
@@ -72,6 +78,12 @@ def _bounds(data: Data) -> Tensor | None:
     if bounds is None:
         return None
     return bounds[data.batch] if isinstance(data, Batch) else bounds[0]
+
+
+def _trajectory_history(item: Data) -> Tensor:
+    """The history frames (Nf, h, 3) of one window that are its trajectory's (not frame 0's copies)."""
+    before = getattr(item, "frames_before", None)
+    return item.history if before is None else item.history[:, item.history.shape[1] - int(before) :]
 
 
 def step_acceleration(
@@ -163,10 +175,10 @@ class GNSTrainable:
         A DAgger dataset (``train.dagger``) gives the model's own frames and MPS's next positions
         (:class:`~lagfluid.data.expert_windows.ExpertWindows`), items of the same fields.
         """
-        frames = self.history + max(self.unrolls)
+        frames, first = self.history + max(self.unrolls), self.history
         return (
-            trajectory_windows(data_dir, "train", history=frames),
-            trajectory_windows(data_dir, "valid", history=frames),
+            trajectory_windows(data_dir, "train", history=frames, first=first),
+            trajectory_windows(data_dir, "valid", history=frames, first=first),
         )
 
     def build_network(self) -> nn.Module:
@@ -179,7 +191,10 @@ class GNSTrainable:
         l0 = _scalar(torch.cat([item.l0 for item in items]), "l0")
         vel, acc = [], []
         for item in items:
-            frames = torch.cat([item.history, item.y.unsqueeze(1)], dim=1).double()
+            fluid = item.ptype == ParticleType.FLUID
+            frames = torch.cat(
+                [_trajectory_history(item), item.pos[fluid].unsqueeze(1), item.y.unsqueeze(1)], dim=1
+            ).double()
             v = (frames[:, 1:] - frames[:, :-1]) / dt
             vel.append(v.reshape(-1, 3))
             acc.append(((v[:, 1:] - v[:, :-1]) / dt).reshape(-1, 3))
@@ -217,7 +232,7 @@ class GNSTrainable:
         training = net.training
         if training:
             net.trained_batches += 1
-            unroll = self._draw_unroll(int(net.trained_batches))
+            unroll = min(self._draw_unroll(int(net.trained_batches)), self._most_unroll(batch))
             if unroll:
                 pos, window = self._pushforward(net, batch, fluid, frames, unroll, dt, l0, bounds, sample)
         target_next = batch.y
@@ -242,6 +257,13 @@ class GNSTrainable:
         return identity
 
     # ------------------------------------------------------------------------ helpers
+    def _most_unroll(self, batch: Data) -> int:
+        """The longest unroll all windows of ``batch`` have trajectory frames for: ``frames_before - H``."""
+        before = getattr(batch, "frames_before", None)
+        if before is None:  # windows without the field hold trajectory frames only
+            return batch.history.shape[1] - self.history
+        return int(before.min()) - self.history
+
     def _draw_unroll(self, batches: int) -> int:
         """Unroll steps of training batch ``batches``: 0 until ``pushforward.start``, then drawn."""
         if batches <= self.push_start or self.unrolls == [0]:

@@ -20,8 +20,8 @@ dataset                      one item (N particles: Nf fluid, then boundary; gra
                              ``y`` v** - v* (Nf, 3); ``restitution`` (1,)
 :class:`TrajectoryWindows`   GNS-style windows of the trajectory: ``pos`` frame t (N, 3), ``ptype``,
                              ``history`` frames t-H .. t-1 (Nf, H, 3), ``y`` frame t+1 (Nf, 3);
-                             ``frame_dt`` (1,) = dt * sample_every; ``bounds`` (1, 2, 3) the
-                             domain box (m), when the scene has a tank
+                             ``frame_dt`` (1,) = dt * sample_every; ``frames_before`` (1,); ``bounds``
+                             (1, 2, 3) the domain box (m), when the scene has a tank
 ============================ ==============================================================================
 
 All items also carry ``dt``, ``l0`` (1,) and ``scene`` (1,) (scene index); scene samples carry
@@ -398,13 +398,20 @@ class TrajectoryWindows(_SceneDataset):
     """GNS-style windows of the MPS trajectories (for end-to-end models).
 
     Uses the uniformly spaced frames (every ``sample_every`` steps). Item ``(scene, t)`` for
-    ``history <= t < T - 1``: ``pos`` (N, 3) frame t with the boundary, ``ptype`` (N,), ``history``
+    ``first <= t < T - 1``: ``pos`` (N, 3) frame t with the boundary, ``ptype`` (N,), ``history``
     (Nf, H, 3) fluid positions of frames t-H .. t-1, ``y`` (Nf, 3) fluid positions of frame t+1; graph-level
-    ``frame_dt`` = dt * sample_every, ``step`` (solver step of frame t) and the scene fields.
+    ``frame_dt`` = dt * sample_every, ``step`` (solver step of frame t), ``frames_before`` (1,) how many of
+    the history frames are the trajectory's, ``min(t, H)``, and the scene fields.
+
+    ``first < H`` gives the earliest frames too: a frame before frame 0 is a copy of frame 0 (padding,
+    never a state: ``frames_before`` says where the trajectory starts). GNS keeps ``H`` = its velocity
+    history plus its pushforward unroll but learns from frame ``first`` = its history on, the first frame a
+    warm-started rollout steps from.
 
     Args:
         root, split, transform, boundary_radius: as the other datasets.
         history: H, past frames per item (GNS: 5).
+        first: the earliest frame t of an item, 0 < first <= H (None: H, no padding).
     """
 
     solver_trajectories_only = True
@@ -417,10 +424,14 @@ class TrajectoryWindows(_SceneDataset):
         transform: Any = None,
         boundary_radius: float | Literal["default"] | None = "default",
         history: int = 5,
+        first: int | None = None,
     ) -> None:
         if history < 1:
             raise LagfluidError(f"history must be >= 1, got {history}")
-        self.history = history
+        first = history if first is None else first
+        if not 1 <= first <= history:
+            raise LagfluidError(f"the first window frame must be in 1..history={history}, got {first}")
+        self.history, self.first = history, first
         super().__init__(root, split, transform, boundary_radius)
 
     @staticmethod
@@ -428,12 +439,25 @@ class TrajectoryWindows(_SceneDataset):
         return min(info.frames, int(info.attrs["steps"]) // int(info.attrs["sample_every"]) + 1)
 
     def _count(self, info: SceneInfo) -> int:
-        return max(0, self._uniform_frames(info) - 1 - self.history)
+        return max(0, self._uniform_frames(info) - 1 - self.first)
+
+    def _frames(self, positions: h5py.Dataset, t: int, after: int) -> tuple[np.ndarray, int]:
+        """Frames t-H .. t+after of ``positions`` (H + 1 + after, Nf, 3), frame 0 repeated before frame 0.
+
+        Returns:
+            The frames and how many of the H before t are the trajectory's, ``min(t, H)``.
+        """
+        start = max(0, t - self.history)
+        window = positions[start : t + after + 1]
+        missing = start - (t - self.history)
+        if missing:
+            window = np.concatenate([np.repeat(window[:1], missing, axis=0), window])
+        return window, self.history - missing
 
     def _item(self, file: int, local: int) -> Data:
         g = self._h5(file)[GROUP]
-        t = local + self.history
-        window = g["position"][t - self.history : t + 2]  # frames t-H .. t+1
+        t = local + self.first
+        window, before = self._frames(g["position"], t, 1)  # frames t-H .. t+1
         b_pos, b_type = self._near_boundary(file, window[-2])
         a = self.infos[file].attrs
         every = int(a["sample_every"])
@@ -443,6 +467,7 @@ class TrajectoryWindows(_SceneDataset):
             y=torch.from_numpy(window[-1]),
             frame_dt=torch.tensor([float(a["dt"]) * every], dtype=torch.float32),
             step=torch.tensor([t * every]),
+            frames_before=torch.tensor([before]),
             **self._bounds(file),
             **self._scene_fields(file),
         )

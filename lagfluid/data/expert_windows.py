@@ -59,10 +59,11 @@ def is_expert_dataset(meta: dict[str, Any]) -> bool:
 class ExpertWindows(TrajectoryWindows):
     """Windows of a DAgger dataset: the model's frames before a labelled frame, and MPS's next positions.
 
-    Item ``(scene, e)`` for each label ``e`` at frame ``t >= history``: ``pos`` (N, 3) the model's frame t
+    Item ``(scene, e)`` for each label ``e`` at frame ``t >= first``: ``pos`` (N, 3) the model's frame t
     with the boundary, ``ptype`` (N,), ``history`` (Nf, H, 3) the model's frames t-H .. t-1, ``y`` (Nf, 3)
-    MPS's fluid positions one model step after frame t; graph-level ``frame_dt``, ``step``, ``bounds`` and
-    the scene fields, as :class:`~lagfluid.data.datasets.TrajectoryWindows`.
+    MPS's fluid positions one model step after frame t; graph-level ``frame_dt``, ``step``,
+    ``frames_before``, ``bounds`` and the scene fields, as :class:`~lagfluid.data.datasets.TrajectoryWindows`
+    (frames before frame 0 likewise frame 0's copies).
 
     Raises:
         LagfluidError: the dataset is not a DAgger dataset.
@@ -78,6 +79,7 @@ class ExpertWindows(TrajectoryWindows):
         transform: Any = None,
         boundary_radius: float | Literal["default"] | None = "default",
         history: int = 5,
+        first: int | None = None,
     ) -> None:
         if not is_expert_dataset(load_metadata(root)):
             raise LagfluidError(
@@ -85,7 +87,7 @@ class ExpertWindows(TrajectoryWindows):
                 "TrajectoryWindows reads the solver's trajectories"
             )
         self._labels: dict[Path, np.ndarray] = {}  # scene file -> frames of its usable labels
-        super().__init__(root, split, transform, boundary_radius, history)
+        super().__init__(root, split, transform, boundary_radius, history, first)
 
     def _count(self, info: SceneInfo) -> int:
         with h5py.File(info.path, "r") as f:
@@ -93,8 +95,8 @@ class ExpertWindows(TrajectoryWindows):
             if group is None or not bool(group.attrs.get("complete", False)):
                 raise TrajectoryFileError(f"{info.path} has no complete '/{EXPERT}' group of labels")
             frames = group["frame"][()]
-        # the labels whose window has `history` frames before it
-        self._labels[info.path] = np.flatnonzero((frames >= self.history) & (frames < info.frames))
+        # the labels from the first window frame on
+        self._labels[info.path] = np.flatnonzero((frames >= self.first) & (frames < info.frames))
         return len(self._labels[info.path])
 
     def _item(self, file: int, local: int) -> Data:
@@ -102,7 +104,7 @@ class ExpertWindows(TrajectoryWindows):
         g, labels = f[GROUP], f[EXPERT]
         row = int(self._labels[self.files[file]][local])
         t = int(labels["frame"][row])
-        window = g["position"][t - self.history : t + 1]  # the model's frames t-H .. t
+        window, before = self._frames(g["position"], t, 0)  # the model's frames t-H .. t
         b_pos, b_type = self._near_boundary(file, window[-1])
         a = self.infos[file].attrs
         every = int(a["sample_every"])
@@ -112,12 +114,15 @@ class ExpertWindows(TrajectoryWindows):
             y=torch.from_numpy(labels["position"][row]),
             frame_dt=torch.tensor([float(a["dt"]) * every], dtype=torch.float32),
             step=torch.tensor([t * every]),
+            frames_before=torch.tensor([before]),
             **self._bounds(file),
             **self._scene_fields(file),
         )
 
 
-def trajectory_windows(root: str | os.PathLike, split: str | None, history: int) -> TrajectoryWindows:
+def trajectory_windows(
+    root: str | os.PathLike, split: str | None, history: int, first: int | None = None
+) -> TrajectoryWindows:
     """The windows of ``root``: :class:`ExpertWindows` for a DAgger dataset, else ``TrajectoryWindows``."""
     cls = ExpertWindows if is_expert_dataset(load_metadata(root)) else TrajectoryWindows
-    return cls(root, split, history=history)
+    return cls(root, split, history=history, first=first)
