@@ -1,10 +1,10 @@
 """DeepLagrangianFluids' loss on held-out windows: their published CConv before and after fine-tuning here.
 
-The windows of ``experiment=finetune_cconv_dlf`` (``data=dlf_frames``: a state and the next two stored frames,
+The windows of `experiment=finetune_cconv_dlf` (`data=dlf_frames`: a state and the next two stored frames,
 20 ms apart, one step of their network each), of the valid and the test scenes (never trained on), unturned,
-in their axes and wall weighting. Each network's loss is the training's (:func:`baselines.cconv.trainable.
-dlf_loss`, ``128 mean exp(-n/40) |dx|^0.5`` over both steps), averaged over every window of the split; the
-second column is the mean displacement error of the second step in mm (what a rollout accumulates).
+in their axes and wall weighting. Each network's loss is the training's (`dlf_loss` of
+`baselines/cconv/trainable.py`: `128 mean exp(-n/40) |dx|^0.5` over both steps), averaged over every window
+of the split; the step-2 error is the mean displacement error of the second step in mm.
 
 Usage::
 
