@@ -659,8 +659,8 @@ PLANTS = [
     (
         "training range: a recorded range keeps every quantity (GNS/CConv warn about the data's dt)",
         "lagfluid/models/training_range.py",
-        "        return {key: list(value) for key, value in meta[\"range\"].items() if key in quantities}",
-        "        return dict(meta[\"range\"])",
+        '        return {key: list(value) for key, value in meta["range"].items() if key in quantities}',
+        '        return dict(meta["range"])',
         "tests/test_data.py::test_a_recorded_training_range_keeps_only_the_quantities_asked_for",
     ),
     (
