@@ -6,6 +6,7 @@ present) is only their source, checked byte for byte, so no test needs it.
 
 from __future__ import annotations
 
+import signal
 from pathlib import Path
 
 import pytest
@@ -143,3 +144,17 @@ def assert_exact_resume(monkeypatch, tmp_path):
         assert losses[0] == losses[1] and len(losses[0]) == 6
 
     return check
+
+
+def _ctrl_c_as_from_a_terminal() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
+@pytest.fixture
+def interruptible() -> dict:
+    """``Popen`` keywords giving the child Ctrl-C's default disposition, however the suite was started.
+
+    A suite started in the background by a non-interactive shell (``nohup bash -c '...' &``) inherits SIGINT
+    ignored, and so does every child: a test that sends SIGINT then saw no interruption at all.
+    """
+    return {"preexec_fn": _ctrl_c_as_from_a_terminal}

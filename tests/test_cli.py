@@ -342,7 +342,7 @@ def test_sigterm_stops_a_rollout_like_ctrl_c_keeping_its_outputs_and_reason(tmp_
     assert (out / "preview.png").is_file() and (out / "rollout.h5").is_file()
 
 
-def test_ctrl_c_is_one_line_naming_how_to_continue_and_exit_status_130(tmp_path):
+def test_ctrl_c_is_one_line_naming_how_to_continue_and_exit_status_130(tmp_path, interruptible):
     import signal
     import time
 
@@ -361,6 +361,7 @@ def test_ctrl_c_is_one_line_naming_how_to_continue_and_exit_status_130(tmp_path)
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
+        **interruptible,
     )
     deadline = time.monotonic() + 120
     while not (out / "resume.pt").is_file() and time.monotonic() < deadline:

@@ -160,12 +160,14 @@ def _stored_frames(part: Path) -> int:
         return 0
 
 
-def test_sigint_after_the_first_frames_then_resume_gives_the_uninterrupted_run(tmp_path):
+def test_sigint_after_the_first_frames_then_resume_gives_the_uninterrupted_run(interruptible, tmp_path):
     """A real Ctrl-C (SIGINT) to a run at the default checkpoint_every_s: it saves a checkpoint, stopping."""
     command = [sys.executable, "-m", "lagfluid.run", "experiment=debug", "steps=15", "threads=1"]
     stopped = tmp_path / "stopped"
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    proc = subprocess.Popen([*command, f"out_dir={stopped}"], cwd=REPO, env=env, stderr=subprocess.DEVNULL)
+    proc = subprocess.Popen(
+        [*command, f"out_dir={stopped}"], cwd=REPO, env=env, stderr=subprocess.DEVNULL, **interruptible
+    )
     part = stopped / "rollout.part.h5.part"
     deadline = time.monotonic() + 300
     while _stored_frames(part) < 3 and proc.poll() is None and time.monotonic() < deadline:
