@@ -33,6 +33,7 @@ checks that the network's time step, particle radius and gravity are the data's 
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -200,11 +201,8 @@ class CConvTrainable:
         """
         rotation = self.axes.to(dtype=torch.float64)
         if self.rotate_about_gravity and turn:
-            angle = float(torch.rand(()) * 2 * torch.pi)  # torch's RNG: seeded, and restored on resume
-            c, s = (
-                torch.cos(torch.tensor(angle, dtype=torch.float64)),
-                torch.sin(torch.tensor(angle, dtype=torch.float64)),
-            )
+            angle = float(torch.rand(()) * 2 * math.pi)  # torch's RNG: seeded, and restored on resume
+            c, s = math.cos(angle), math.sin(angle)
             turn = torch.tensor([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
             rotation = rotation @ turn
         return rotation.to(device=device, dtype=dtype)
