@@ -59,9 +59,15 @@ def command(
         *("python", "-m", "lagfluid.run", "task=evaluate", f"model={model}", f"scene={args.scene}"),
         *(f"steps={steps}", f"write_every={every}", f"threads={args.threads}", "progress=false"),
         f"evaluate.reference_dir={args.reference_dir}",
+        *_weights(args),
         *overrides,
         f"out_dir={out}",
     ]
+
+
+def _weights(args: argparse.Namespace) -> tuple[str, ...]:
+    """``model.weights=DIR`` where ``--weights`` names a folder, else nothing (the shipped weights)."""
+    return (f"model.weights={args.weights}",) if args.weights else ()
 
 
 def result_row(metrics: dict[str, Any], cmd: list[str]) -> dict[str, Any]:
@@ -114,7 +120,7 @@ def verdict(model: str, rows: list[dict[str, Any]]) -> str:
 
 def run_model(model: str, args: argparse.Namespace) -> list[dict[str, Any]]:
     """The rows of ``model``: every variant, the relaxed one where one of them does not complete."""
-    cfg = compose_config([f"model={model}", f"scene={args.scene}"])
+    cfg = compose_config([f"model={model}", f"scene={args.scene}", *_weights(args)])
     own = build_simulator(cfg).dt
     dt = float(own) if own is not None else scene_params(cfg).dt
     rows: list[dict[str, Any]] = []
@@ -151,6 +157,11 @@ def main(argv: list[str] | None = None) -> None:
     )
     ap.add_argument("--results", default=str(RESULTS))
     ap.add_argument("--name", default="exact_after", help="results file name (<name>.md, <name>.csv)")
+    ap.add_argument(
+        "--weights",
+        default=None,
+        help="model.weights of every model: a task=train out_dir (default: each model's shipped weights)",
+    )
     args = ap.parse_args(argv)
     load = os.getloadavg()[0]
     rows, verdicts = [], []

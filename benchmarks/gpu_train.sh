@@ -15,11 +15,12 @@
 #      model=cconv with model.weights=$OUT rolls them out), gns_loss.csv, cconv_loss.csv, gpu_train.log
 #      (every command's output; the GPU's use every 10 s) and provenance.md (commit, date, nvidia-smi,
 #      versions, each command with its exit status and wall time, each training's iterations and losses).
-# Time plan for a 15 min lease (~3-4 min of start-up, benchmarks/gpu_check.sh first, this in its own call):
+# Time plan for a 15 min lease (~3-4 min of start-up; benchmarks/gpu_day.sh runs gpu_check.sh, then this):
 # the default budget, 360 s, is ~2 min of data, ~3.5 min of the two trainings side by side and ~10 s of
 # export; a slower data step leaves the trainings less (at least 60 s each). Timeouts end a hung step.
 # Each part runs even when another failed (not the trainings without data); exit status 1 if any did.
-# Needs lagfluid installed (pip install -e .: the models gns and cconv are plugins found by entry points).
+# Needs lagfluid installed (pip install -e .: the models gns and cconv are plugins found by entry points;
+# benchmarks/gpu_day.sh installs it and the packages a bare GPU machine lacks).
 # Usage: bash benchmarks/gpu_train.sh [budget in s, default 360]
 #   GPU_TRAIN_DRY_RUN=1: the same commands on the CPU at tiny sizes (data=tiny, small networks, seconds of
 #   training; tests/test_gpu_train.py). GPU_TRAIN_WORK: the working folder (runs/gpu_train); OUT: where the

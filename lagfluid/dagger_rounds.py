@@ -97,6 +97,12 @@ class DAgger:
                 "train.dagger rolls out and trains the plain model: set model.exact_after.collision=false "
                 "and model.exact_after.pressure=false"
             )
+        stride = cfg.train.get("frame_stride", 1)
+        if values["rounds"] and stride != 1:  # else refused only at round 1's fine-tune, after its rollouts
+            raise ConfigError(
+                f"train.dagger labels the model's own steps, one stored frame each: train.frame_stride must "
+                f"be 1 with rounds, got {stride!r}"
+            )
         start = section.get("start_from")
         if start is not None and values["rounds"] and not Path(str(start)).is_dir():
             raise ConfigError(f"train.dagger.start_from={start} is not a folder of the model's weights")

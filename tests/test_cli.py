@@ -189,9 +189,16 @@ def trajectory_file(tmp_path_factory):
     return out / "rollout.h5"
 
 
+@pytest.fixture(scope="module")
+def initial_states():
+    """Scene name -> its initial state, built once: a scene's state does not depend on the model, and the
+    full-size water fall takes ~1 s to build."""
+    return {}
+
+
 @pytest.mark.parametrize("model", available_models())
 @pytest.mark.parametrize("scene", _group_names("scene"))
-def test_every_model_and_scene_composes_and_instantiates(model, scene, request):
+def test_every_model_and_scene_composes_and_instantiates(model, scene, request, initial_states):
     from lagfluid.config import build_initial_state, build_simulator
 
     # the file scene reads the authors' grid the repository ships; published weights are the models' defaults
@@ -209,7 +216,9 @@ def test_every_model_and_scene_composes_and_instantiates(model, scene, request):
         pytest.skip(f"model={model} has no simulator registered yet (only its trainable)")
     cfg = _compose(f"model={model}", f"scene={scene}", "steps=1", "dt=0.001", "device=cpu", "seed=3", *extra)
     assert cfg.model.name == model and cfg.scene.name == scene and cfg.dt == 0.001
-    state = build_initial_state(cfg)
+    if scene not in initial_states:
+        initial_states[scene] = build_initial_state(cfg)
+    state = initial_states[scene].clone()  # a simulator's reset never sees another's
     assert state.params.dt == 0.001 and state.n_fluid > 0
     sim = build_simulator(cfg)
     assert sim.name == model

@@ -15,7 +15,7 @@ from omegaconf import open_dict
 from baselines.gns.trainable import GNSTrainable
 from lagfluid.config import at_simulator_time_step, build_simulator
 from lagfluid.data.datasets import TrajectoryWindows
-from lagfluid.data.expert_windows import EXPERT, ExpertWindows
+from lagfluid.data.expert_windows import EXPERT, ExpertWindows, trajectory_windows
 from lagfluid.data.layout import GROUP
 from lagfluid.errors import ConfigError, LagfluidError, RolloutError
 from lagfluid.generate import generate
@@ -175,6 +175,8 @@ def test_a_dagger_window_is_the_models_frames_and_its_target_the_inverse_of_mps_
     with pytest.raises(LagfluidError, match="on-policy dataset"):
         TrajectoryWindows(data, "train", history=2)
     assert isinstance(trainable.datasets(data)[0], ExpertWindows)
+    with pytest.raises(LagfluidError, match="DAgger dataset, whose frames are the model's own steps"):
+        trajectory_windows(data, "train", history=2, stride=2)  # its frames are already the model's
 
 
 def test_each_rounds_dam_rollout_is_measured_and_a_rerun_redoes_nothing(two_rounds):
@@ -267,6 +269,7 @@ def test_where_mps_itself_fails_from_the_models_state_the_scene_stops_there(two_
             r"train.dagger.dam_scene=dams: no such scene; available: .*dam_small",
         ),
         ("model.exact_after.collision=true", r"train.dagger rolls out and trains the plain model"),
+        ("train.frame_stride=2", r"train.frame_stride must be 1 with rounds, got 2$"),
         ("scene=dam", r"train.dagger.rounds regenerates .*\(scene=dam; the dataset's is scene=random\)"),
     ],
 )

@@ -6,6 +6,7 @@ import json
 import os
 import subprocess
 import sys
+from pathlib import Path
 
 import h5py
 import pytest
@@ -340,6 +341,11 @@ def test_the_tables_list_the_exact_after_rows_under_their_own_labels():
         ("gns_exact", "gns", "GNS (CPU size) + exact collision + MPS pressure"),
         ("cconv_original_exact", "cconv_original", "CConv, DLF's weights + exact collision + MPS pressure"),
         ("cconv_exact", "cconv", "CConv (CPU training) + exact collision + MPS pressure"),
+        (
+            "cconv_finetuned_exact",
+            "cconv_finetuned",
+            "CConv, DLF's weights fine-tuned here + exact collision + MPS pressure",
+        ),
     ):
         sim = simulator(key)
         assert (sim.label, sim.model) == (label, base) and "not the plain" in sim.note
@@ -352,3 +358,19 @@ def test_the_tables_list_the_exact_after_rows_under_their_own_labels():
             plain.scene.name,
         )
         assert build_simulator(cfg).name == f"{base} + exact collision + MPS pressure"
+
+
+def test_the_benchmark_rolls_out_the_weights_it_is_given():
+    """``benchmarks.exact_after --weights DIR`` runs every row on ``model.weights=DIR`` (the GNS
+    frame-interval measurement's 16 ms network), none without it (the shipped weights)."""
+    import argparse
+
+    from benchmarks.exact_after import command
+
+    args = argparse.Namespace(duration=1.0, threads=1, reference_dir="ref", scene="dam", weights=None)
+    plain = command("gns", 0.008, (), Path("out"), args)
+    assert not any(a.startswith("model.weights=") for a in plain) and "steps=125" in plain
+    args.weights = "runs/train/gns-16ms"
+    given = command("gns", 0.016, ("model.exact_after.collision=true",), Path("out"), args)
+    assert "model.weights=runs/train/gns-16ms" in given and "steps=62" in given
+    assert given.index("model.weights=runs/train/gns-16ms") < given.index("model.exact_after.collision=true")

@@ -19,7 +19,7 @@ from baselines.gns.trainable import GNSTrainable, random_walk_noise, step_accele
 from benchmarks.gns_edge_layer import concatenated_first_layer
 from lagfluid.config import at_simulator_time_step, build_initial_state, initial_history, run_guard
 from lagfluid.data.symmetry import HorizontalSymmetry
-from lagfluid.errors import LagfluidError, RolloutError
+from lagfluid.errors import ConfigError, LagfluidError, RolloutError
 from lagfluid.generate import generate
 from lagfluid.integrate import acceleration_from_positions, semi_implicit_euler
 from lagfluid.models.mps_simulator import build_mps
@@ -587,6 +587,47 @@ def test_trajectory_windows_carry_the_domain_bounds(tiny_data):
     with h5py.File(scene, "r") as f:
         expected = torch.from_numpy(f["00000"].attrs["bounds"]).float()
     assert torch.equal(item.bounds, expected.unsqueeze(0))
+
+
+@pytest.mark.parametrize("first", [1, 2])
+def test_trajectory_windows_with_a_frame_stride_take_every_other_stored_frame(tiny_data, first):
+    """Stride 2: history t-4, t-2, frame t, target t+2 of the stored frames (by value, from the file), the
+    spacing twice the data's, every stored frame from ``first * 2`` a window; frame 0 pads before frame 0."""
+    from lagfluid.data.datasets import TrajectoryWindows
+
+    one = TrajectoryWindows(tiny_data, "train", history=2, first=first)
+    two = TrajectoryWindows(tiny_data, "train", history=2, first=first, stride=2)
+    with h5py.File(tiny_data / two.metadata["splits"]["train"][0], "r") as f:
+        frames = f["00000/position"][()]
+    stored = min(len(frames), two._uniform_frames(two.infos[0]))
+    assert two._count(two.infos[0]) == stored - 2 * (1 + first) == one._count(one.infos[0]) - 1 - first
+    for local in (0, 1, two._count(two.infos[0]) - 1):
+        item, t = two[local], local + 2 * first
+        nf = item.y.shape[0]
+        history = [frames[max(t - 4, 0)], frames[t - 2]]
+        np.testing.assert_array_equal(item.history.numpy(), np.stack(history, axis=1))
+        np.testing.assert_array_equal(item.pos[:nf].numpy(), frames[t])
+        np.testing.assert_array_equal(item.y.numpy(), frames[t + 2])
+        assert int(item.frames_before) == min(t // 2, 2)
+        assert int(item.step) == t * (int(one[0].step) // first)  # one[0] is stored frame `first`
+        torch.testing.assert_close(item.frame_dt, 2 * one[0].frame_dt)
+    with pytest.raises(LagfluidError, match="a whole number of stored frames >= 1: 0"):
+        TrajectoryWindows(tiny_data, "train", history=2, stride=0)
+
+
+def test_train_frame_stride_reaches_the_windows_and_a_bad_one_is_refused(tiny_data):
+    train_items, valid_items = _trainable(frame_stride=2).datasets(tiny_data)
+    assert train_items.stride == valid_items.stride == 2
+    assert float(train_items[0].frame_dt) == pytest.approx(
+        2 * float(_trainable().datasets(tiny_data)[0][0].frame_dt)
+    )
+    assert (
+        _trainable(frame_stride=2).identity()["frame_stride"] == 2
+    )  # a resume with another stride is refused
+    assert "frame_stride" not in _trainable().identity()  # earlier checkpoints keep their identity
+    for bad in (0, 1.5, True):
+        with pytest.raises(ConfigError, match=f"train.frame_stride must be a whole number .*: {bad!r}$"):
+            _trainable(frame_stride=bad)
 
 
 @pytest.mark.skipif(not (SHIPPED / "gns.pt").is_file(), reason="no shipped GNS weights")

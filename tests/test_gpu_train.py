@@ -1,15 +1,18 @@
-"""``benchmarks/gpu_train.sh``'s CPU dry run: the GPU script's commands end to end at tiny sizes (< 1 min).
+"""``benchmarks/gpu_day.sh``'s CPU dry run, which runs ``benchmarks/gpu_train.sh``'s: the GPU scripts'
+commands end to end at tiny sizes (< 1 min).
 
-What a GPU lease brings back must be there and usable: both networks load as simulators, both loss logs have
-rows, provenance names the commands; each training was stopped by ``train.max_seconds`` (its profile's
-iterations are the full recipe's) and can be continued.
+What a GPU lease brings back must be there and usable, in no more files than a lease returns: both networks
+load as simulators, both loss logs have rows, provenance names the commands; each training was stopped by
+``train.max_seconds`` (its profile's iterations are the full recipe's) and can be continued.
 """
 
 import csv
 import math
 import os
+import re
 import signal
 import subprocess
+import tarfile
 from pathlib import Path
 
 import pytest
@@ -22,12 +25,18 @@ from lagfluid.run import CONF_DIR
 
 REPO = Path(__file__).resolve().parents[1]
 SCRIPT = "benchmarks/gpu_train.sh"
+DAY = "benchmarks/gpu_day.sh"
 
 BACK = {"gns.pt", "cconv.pt", "gns_loss.csv", "cconv_loss.csv", "gpu_train.log", "provenance.md"}
+DAY_BACK = BACK | {"gpu_day.log", "gpu_check.tar.gz"}
 
 
 def _dry_run_env(work, out):
     return {**os.environ, "GPU_TRAIN_DRY_RUN": "1", "GPU_TRAIN_WORK": str(work), "OUT": str(out)}
+
+
+def _day_env(work, out):
+    return {**os.environ, "GPU_DAY_DRY_RUN": "1", "GPU_DAY_WORK": str(work), "OUT": str(out)}
 
 
 def _compose(*overrides):
@@ -41,9 +50,9 @@ def dry_run(tmp_path_factory):
     root = tmp_path_factory.mktemp("gpu_train")
     # its own process group: a run that hangs is ended with every training it started
     proc = subprocess.Popen(
-        ["bash", SCRIPT],
+        ["bash", DAY],
         cwd=REPO,
-        env=_dry_run_env(root / "work", root / "out"),
+        env=_day_env(root / "day", root / "out"),
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
         text=True,
@@ -55,13 +64,30 @@ def dry_run(tmp_path_factory):
         os.killpg(proc.pid, signal.SIGKILL)
         output, _ = proc.communicate()
         pytest.fail(f"the dry run did not end in 300 s:\n{output[-3000:]}")
-    return proc.returncode, output, root / "out", root / "work"
+    return proc.returncode, output, root / "out", root / "day" / "train"
 
 
-def test_the_dry_run_brings_back_six_flat_files(dry_run):
+def test_the_dry_run_brings_back_eight_flat_files_a_lease_returns(dry_run):
     rc, output, out, _ = dry_run
     assert rc == 0, output[-3000:]
-    assert {p.name for p in out.iterdir()} == BACK  # a few flat files: what a lease's output folder returns
+    # a lease returns at most 8 files, each named in letters, digits, '.', '_' and '-'
+    assert {p.name for p in out.iterdir()} == DAY_BACK and all(p.is_file() for p in out.iterdir())
+    assert all(re.fullmatch(r"[A-Za-z0-9._-]+", p.name) for p in out.iterdir())
+    log = (out / "gpu_day.log").read_text()
+    assert "environment\t0\t" in log and "check\tskipped\t0" in log and "train\t0\t" in log
+    assert "exit status: 0" in log and "===== train" in log
+    with tarfile.open(out / "gpu_check.tar.gz") as tar:
+        assert tar.getnames()[0] == "check"  # the check's folder (skipped in a dry run: empty)
+
+
+def test_a_day_into_an_out_that_holds_files_is_refused_untouched(tmp_path):
+    (tmp_path / "earlier.md").write_text("mine")
+    env = _day_env(tmp_path / "day", tmp_path)
+    done = subprocess.run(["bash", DAY], cwd=REPO, env=env, capture_output=True, text=True)
+    assert done.returncode == 1
+    assert done.stderr == f"benchmarks/gpu_day.sh: {tmp_path} is not empty: move its files, or set OUT\n"
+    assert (tmp_path / "earlier.md").read_text() == "mine"
+    assert {p.name for p in tmp_path.iterdir()} == {"earlier.md"}  # nothing written beside it
 
 
 @pytest.mark.parametrize(("kind", "iterations"), [("gns", 2_000_000), ("cconv", 50_000)])

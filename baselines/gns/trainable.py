@@ -167,18 +167,24 @@ class GNSTrainable:
         self.push_start = int(push.get("start", 0))
         self.history = int(self.options.get("history", 5))
         self.symmetries = bool(tcfg.get("horizontal_symmetries", False))
+        stride = tcfg.get("frame_stride", 1)
+        if isinstance(stride, bool) or not isinstance(stride, int) or stride < 1:
+            raise ConfigError(f"train.frame_stride must be a whole number of stored frames >= 1: {stride!r}")
+        self.frame_stride = stride
 
     # ------------------------------------------------------------------------ Trainable
     def datasets(self, data_dir: Path) -> tuple[Any, Any]:
         """Windows of ``H + K`` earlier frames from the train and valid splits.
 
+        A model frame every ``train.frame_stride`` stored frames (its time step: the data's spacing times it).
+
         A DAgger dataset (``train.dagger``) gives the model's own frames and MPS's next positions
         (:class:`~lagfluid.data.expert_windows.ExpertWindows`), items of the same fields.
         """
-        frames, first = self.history + max(self.unrolls), self.history
+        frames, first, stride = self.history + max(self.unrolls), self.history, self.frame_stride
         return (
-            trajectory_windows(data_dir, "train", history=frames, first=first),
-            trajectory_windows(data_dir, "valid", history=frames, first=first),
+            trajectory_windows(data_dir, "train", history=frames, first=first, stride=stride),
+            trajectory_windows(data_dir, "valid", history=frames, first=first, stride=stride),
         )
 
     def build_network(self) -> nn.Module:
@@ -254,6 +260,8 @@ class GNSTrainable:
         }
         if self.symmetries:  # only then, so checkpoints trained without it keep their identity
             identity["horizontal_symmetries"] = True
+        if self.frame_stride != 1:  # likewise
+            identity["frame_stride"] = self.frame_stride
         return identity
 
     # ------------------------------------------------------------------------ helpers

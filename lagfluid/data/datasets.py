@@ -397,11 +397,12 @@ class CollisionSamples(_SceneDataset):
 class TrajectoryWindows(_SceneDataset):
     """GNS-style windows of the MPS trajectories (for end-to-end models).
 
-    Uses the uniformly spaced frames (every ``sample_every`` steps). Item ``(scene, t)`` for
-    ``first <= t < T - 1``: ``pos`` (N, 3) frame t with the boundary, ``ptype`` (N,), ``history``
-    (Nf, H, 3) fluid positions of frames t-H .. t-1, ``y`` (Nf, 3) fluid positions of frame t+1; graph-level
-    ``frame_dt`` = dt * sample_every, ``step`` (solver step of frame t), ``frames_before`` (1,) how many of
-    the history frames are the trajectory's, ``min(t, H)``, and the scene fields.
+    Uses the uniformly spaced frames (every ``sample_every`` steps), a model frame every ``stride`` of them
+    (``s``). Item ``(scene, t)`` for stored frames ``first * s <= t < T - s``: ``pos`` (N, 3) frame t with the
+    boundary, ``ptype`` (N,), ``history`` (Nf, H, 3) fluid positions of frames t-H*s, ..., t-s, ``y`` (Nf, 3)
+    fluid positions of frame t+s; graph-level ``frame_dt`` = dt * sample_every * s, ``step`` (solver step of
+    frame t), ``frames_before`` (1,) how many of the history frames are the trajectory's, ``min(t // s, H)``,
+    and the scene fields. Every stored frame starts a window, so a stride of 2 keeps both phases of the data.
 
     ``first < H`` gives the earliest frames too: a frame before frame 0 is a copy of frame 0 (padding,
     never a state: ``frames_before`` says where the trajectory starts). GNS keeps ``H`` = its velocity
@@ -411,7 +412,8 @@ class TrajectoryWindows(_SceneDataset):
     Args:
         root, split, transform, boundary_radius: as the other datasets.
         history: H, past frames per item (GNS: 5).
-        first: the earliest frame t of an item, 0 < first <= H (None: H, no padding).
+        first: the earliest frame t of an item, in model frames, 0 < first <= H (None: H, no padding).
+        stride: stored frames per model frame (1: the model steps by the data's frame spacing).
     """
 
     solver_trajectories_only = True
@@ -425,13 +427,16 @@ class TrajectoryWindows(_SceneDataset):
         boundary_radius: float | Literal["default"] | None = "default",
         history: int = 5,
         first: int | None = None,
+        stride: int = 1,
     ) -> None:
         if history < 1:
             raise LagfluidError(f"history must be >= 1, got {history}")
         first = history if first is None else first
         if not 1 <= first <= history:
             raise LagfluidError(f"the first window frame must be in 1..history={history}, got {first}")
-        self.history, self.first = history, first
+        if isinstance(stride, bool) or not isinstance(stride, int) or stride < 1:
+            raise LagfluidError(f"the frame stride must be a whole number of stored frames >= 1: {stride!r}")
+        self.history, self.first, self.stride = history, first, stride
         super().__init__(root, split, transform, boundary_radius)
 
     @staticmethod
@@ -439,25 +444,26 @@ class TrajectoryWindows(_SceneDataset):
         return min(info.frames, int(info.attrs["steps"]) // int(info.attrs["sample_every"]) + 1)
 
     def _count(self, info: SceneInfo) -> int:
-        return max(0, self._uniform_frames(info) - 1 - self.first)
+        return max(0, self._uniform_frames(info) - self.stride * (1 + self.first))
 
     def _frames(self, positions: h5py.Dataset, t: int, after: int) -> tuple[np.ndarray, int]:
-        """Frames t-H .. t+after of ``positions`` (H + 1 + after, Nf, 3), frame 0 repeated before frame 0.
+        """Stored frames t-H*s, ..., t+after*s of ``positions`` (H + 1 + after, Nf, 3), ``s`` the stride.
+
+        Frame 0 stands for those before frame 0.
 
         Returns:
-            The frames and how many of the H before t are the trajectory's, ``min(t, H)``.
+            The frames and how many of the H before t are the trajectory's, ``min(t // s, H)``.
         """
-        start = max(0, t - self.history)
-        window = positions[start : t + after + 1]
-        missing = start - (t - self.history)
-        if missing:
-            window = np.concatenate([np.repeat(window[:1], missing, axis=0), window])
-        return window, self.history - missing
+        s = self.stride
+        start = max(0, t - self.history * s)
+        block = positions[start : t + after * s + 1]
+        index = np.maximum(np.arange(t - self.history * s, t + after * s + 1, s), 0) - start
+        return block[index], min(t // s, self.history)
 
     def _item(self, file: int, local: int) -> Data:
         g = self._h5(file)[GROUP]
-        t = local + self.first
-        window, before = self._frames(g["position"], t, 1)  # frames t-H .. t+1
+        t = local + self.first * self.stride
+        window, before = self._frames(g["position"], t, 1)  # frames t-H*s .. t+s
         b_pos, b_type = self._near_boundary(file, window[-2])
         a = self.infos[file].attrs
         every = int(a["sample_every"])
@@ -465,7 +471,7 @@ class TrajectoryWindows(_SceneDataset):
             **_with_boundary(window[-2], None, b_pos, b_type),
             history=torch.from_numpy(np.ascontiguousarray(window[:-2].transpose(1, 0, 2))),
             y=torch.from_numpy(window[-1]),
-            frame_dt=torch.tensor([float(a["dt"]) * every], dtype=torch.float32),
+            frame_dt=torch.tensor([float(a["dt"]) * every * self.stride], dtype=torch.float32),
             step=torch.tensor([t * every]),
             frames_before=torch.tensor([before]),
             **self._bounds(file),

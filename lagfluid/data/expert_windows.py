@@ -121,8 +121,18 @@ class ExpertWindows(TrajectoryWindows):
 
 
 def trajectory_windows(
-    root: str | os.PathLike, split: str | None, history: int, first: int | None = None
+    root: str | os.PathLike, split: str | None, history: int, first: int | None = None, stride: int = 1
 ) -> TrajectoryWindows:
-    """The windows of ``root``: :class:`ExpertWindows` for a DAgger dataset, else ``TrajectoryWindows``."""
-    cls = ExpertWindows if is_expert_dataset(load_metadata(root)) else TrajectoryWindows
-    return cls(root, split, history=history, first=first)
+    """The windows of ``root``: :class:`ExpertWindows` for a DAgger dataset, else ``TrajectoryWindows``.
+
+    ``stride``: stored frames per model frame of a solver dataset; a DAgger dataset's frames are already the
+    model's, so it takes none but 1.
+    """
+    if is_expert_dataset(load_metadata(root)):
+        if stride != 1:
+            raise LagfluidError(
+                f"{root} is a DAgger dataset, whose frames are the model's own steps: a frame stride of "
+                f"{stride} does not apply (train.frame_stride 1 for DAgger rounds)"
+            )
+        return ExpertWindows(root, split, history=history, first=first)
+    return TrajectoryWindows(root, split, history=history, first=first, stride=stride)
