@@ -1,0 +1,94 @@
+"""The pure GNS row before and after each lever of issue 35, on the 1 s dam, with and without exact stages.
+
+Each lever is a folder of GNS weights (``model.weights``) and a line saying what made it. For every lever the
+rows of :mod:`benchmarks.exact_after` (the plain model, + exact collision, + MPS pressure, + both, and + both
+with K = 3, w = 0.5 where one of those does not complete), each ``task=evaluate`` against the same MPS
+reference: complete, or the step the guard stops it at, its Chamfer distance to MPS and density error.
+
+Usage::
+
+    python -m benchmarks.gns_levers [--levers NAME=DIR=TEXT ...] [--runs-dir runs/gns_levers]
+
+A lever's runs are in ``<runs-dir>/<name>``; a row whose folder already holds ``metrics.json`` is read, not
+run again. Writes ``benchmarks/results/gns_levers.{md,csv}`` with provenance and each row's command.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+from pathlib import Path
+from typing import Any
+
+from benchmarks.exact_after import run_model, verdict
+from benchmarks.provenance import provenance, write_results
+
+RESULTS = Path(__file__).resolve().parent / "results"
+
+LEVERS: tuple[tuple[str, str, str], ...] = (
+    (
+        "shipped",
+        "baselines/gns/weights",
+        "the shipped weights (model=gns; their MODEL_CARD.md), trained before the window and statistics "
+        "fixes",
+    ),
+    (
+        "fixed",
+        "baselines/gns/weights/in_progress",
+        "retrained with the window and statistics fixes (experiment=retrain_gns, 1,600 iterations, 8 ms "
+        "frames)",
+    ),
+)
+"""(name, weights folder, what made them): the levers always measured; ``--levers`` adds others."""
+
+
+def parse_lever(text: str) -> tuple[str, str, str]:
+    """``NAME=DIR=TEXT`` as (name, folder, description).
+
+    Raises:
+        SystemExit: not three ``=``-separated parts, or ``DIR`` is not a folder.
+    """
+    parts = text.split("=", 2)
+    if len(parts) != 3 or not all(parts):
+        raise SystemExit(f"--levers: {text!r} is not NAME=DIR=TEXT")
+    if not Path(parts[1]).is_dir():
+        raise SystemExit(f"--levers: {parts[1]} (of {parts[0]}) is not a folder of GNS weights")
+    return parts[0], parts[1], parts[2]
+
+
+def lever_rows(name: str, weights: str, about: str, args: argparse.Namespace) -> list[dict[str, Any]]:
+    """The rows of one lever: :func:`benchmarks.exact_after.run_model` on its weights, each with its name."""
+    runs = str(Path(args.runs_dir) / name)
+    here = argparse.Namespace(**{**vars(args), "runs_dir": runs, "weights": weights})
+    return [{"lever": name, "weights": f"`{weights}`: {about}", **row} for row in run_model("gns", here)]
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--levers", nargs="*", default=[], type=parse_lever, help="more levers: NAME=DIR=TEXT")
+    ap.add_argument("--scene", default="dam")
+    ap.add_argument("--duration", type=float, default=1.0, help="s of the scene")
+    ap.add_argument("--runs-dir", default="runs/gns_levers")
+    ap.add_argument("--reference-dir", default="runs/reference", help="the MPS references' cache")
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--results", default=str(RESULTS))
+    args = ap.parse_args(argv)
+    load = os.getloadavg()[0]
+    rows, verdicts = [], []
+    for name, weights, about in (*LEVERS, *args.levers):
+        these = lever_rows(name, weights, about, args)
+        rows += these
+        verdicts.append(verdict(name, these))
+    intro = (
+        "# GNS before and after each lever (issue 35)\n\n"
+        f"`task=evaluate` of GNS on `{args.scene}` for {args.duration:g} s, frames every 40 ms, against one "
+        "MPS reference at the scene's dt, for each set of weights (a lever) alone and with MPS's exact "
+        "stages after each of its steps (`model.exact_after`, `benchmarks/exact_after.py`). A stopped run is "
+        "compared over the frames it stored.\n\n" + "\n".join(f"- {v}" for v in verdicts)
+    )
+    prov = provenance("benchmarks.gns_levers", load, runs=str(args.runs_dir))
+    print(write_results(Path(args.results), "gns_levers", rows, intro, prov))
+
+
+if __name__ == "__main__":
+    main()
