@@ -56,11 +56,11 @@ def parse_lever(text: str) -> tuple[str, str, str]:
     return parts[0], parts[1], parts[2]
 
 
-def lever_rows(name: str, weights: str, about: str, args: argparse.Namespace) -> list[dict[str, Any]]:
+def lever_rows(name: str, weights: str, args: argparse.Namespace) -> list[dict[str, Any]]:
     """The rows of one lever: :func:`benchmarks.exact_after.run_model` on its weights, each with its name."""
     runs = str(Path(args.runs_dir) / name)
     here = argparse.Namespace(**{**vars(args), "runs_dir": runs, "weights": weights})
-    return [{"lever": name, "weights": f"`{weights}`: {about}", **row} for row in run_model("gns", here)]
+    return [{"lever": name, "weights": weights, **row} for row in run_model("gns", here)]
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -76,9 +76,9 @@ def main(argv: list[str] | None = None) -> None:
     load = os.getloadavg()[0]
     rows, verdicts = [], []
     for name, weights, about in (*LEVERS, *args.levers):
-        these = lever_rows(name, weights, about, args)
+        these = lever_rows(name, weights, args)
         rows += these
-        verdicts.append(verdict(name, these))
+        verdicts.append(f"{verdict(name, these)} Weights `{weights}`: {about}.")
     intro = (
         "# GNS before and after each lever (issue 35)\n\n"
         f"`task=evaluate` of GNS on `{args.scene}` for {args.duration:g} s, frames every 40 ms, against one "

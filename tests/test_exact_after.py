@@ -391,9 +391,9 @@ def test_gns_levers_runs_each_levers_weights_in_its_own_folder(tmp_path, monkeyp
 
     monkeypatch.setattr(levers, "run_model", fake_run_model)
     args = argparse.Namespace(runs_dir=str(tmp_path), weights=None)
-    rows = levers.lever_rows("dagger2", "runs/x", "two DAgger rounds", args)
+    rows = levers.lever_rows("dagger2", "runs/x", args)
     assert seen == [("gns", "runs/x", str(tmp_path / "dagger2"))]
-    row = {"lever": "dagger2", "weights": "`runs/x`: two DAgger rounds", "simulator": "gns"}
+    row = {"lever": "dagger2", "weights": "runs/x", "simulator": "gns"}
     assert rows == [{**row, "rollout": "complete"}]
     assert levers.parse_lever(f"a={tmp_path}=what made it=x") == ("a", str(tmp_path), "what made it=x")
     with pytest.raises(SystemExit, match="is not NAME=DIR=TEXT"):
