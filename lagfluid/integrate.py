@@ -1,8 +1,9 @@
 """Every forward update a simulator applies, each beside its exact inverse (the training target).
 
-DESIGN convention 5 (DeepMind GNS ``_decoder_postprocessor``, LagrangeBench ``integrate``): the integrator
-lives outside the models, and a training target is the inverse of the update the rollout applies, so a
-network trained on one-step targets and rolled out by the same update agree by construction.
+One integrator, outside the models (``docs/architecture.md#conventions``, convention 5; DeepMind GNS
+``_decoder_postprocessor``, LagrangeBench ``integrate``): a training target is the inverse of the update
+the rollout applies, so a network trained on one-step targets and rolled out by the same update agree by
+construction.
 
 The split-step scheme (:mod:`lagfluid.physics.stages`, paper A.1 and the authors' position updates)::
 

@@ -742,6 +742,28 @@ PLANTS = [
         "unroll = self._draw_unroll(int(net.trained_batches))",
         "tests/test_gns.py::test_the_windows_start_at_the_first_frame_a_warm_started_rollout_steps_from",
     ),
+    # the design document in the repository, docs/architecture.md (issue 36, item 5)
+    (
+        "a docstring points to the design document outside the repository again",
+        "lagfluid/integrate.py",
+        "One integrator, outside the models (``docs/architecture.md#conventions``, convention 5;",
+        "DESIGN convention 5 (",
+        "tests/test_docs.py::test_nothing_points_to_a_design_document_outside_the_repository",
+    ),
+    (
+        "the architecture document names a file that is not there (a module moved, the document not)",
+        "docs/architecture.md",
+        "(`VerletNeighborList`, `lagfluid/neighbor_list.py`)",
+        "(`VerletNeighborList`, `lagfluid/neighbors/verlet_list.py`)",
+        "tests/test_docs.py::test_every_path_in_the_architecture_document_exists",
+    ),
+    (
+        "a pointer cites a section the architecture document does not have",
+        "lagfluid/data/layout.py",
+        "``docs/architecture.md#layers``",
+        "``docs/architecture.md#the-layers``",
+        "tests/test_docs.py::test_every_anchor_pointing_into_the_architecture_document_exists",
+    ),
 ]
 
 

@@ -1,4 +1,4 @@
-"""Dependencies point one way (DESIGN.md): a test that reads every import of ``lagfluid/`` with ``ast``.
+"""Dependencies point one way (docs/architecture.md#layers): a test reading every import of ``lagfluid/``.
 
 Nothing is imported: each module's source is parsed and every ``import``/``from ... import`` in it,
 at module level or inside a function, is checked against the table below. Run it as a test

@@ -234,7 +234,8 @@ def test_guard_catches_nan():
 
 
 def test_recorded_intermediates_invert_the_update_exactly():
-    # Training targets must be the exact inverse of the update the rollout applies (DESIGN 5).
+    # Training targets must be the exact inverse of the update the rollout applies
+    # (docs/architecture.md#conventions, convention 5).
     state = build_scene("dam", fluid_size=[5, 5, 6], tank_size=[12, 6], dtype=torch.float64)
     sim = mps()
     new = sim.step(state, record=True)

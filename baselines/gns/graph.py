@@ -3,10 +3,11 @@
 Nodes are every fluid particle and the boundary particles within the connectivity radius ``R`` of a fluid
 particle (the boundary a fluid particle can see; farther boundary particles are not modelled). Edges are
 every ordered pair closer than ``R`` whose receiver is a fluid particle, all of them (no neighbour cap).
-Boundary nodes never move and carry no loss, and, as DESIGN has every static boundary, enter the graph only
-as neighbours of the fluid: they send messages and receive none (their latents still pass through every
-block's node MLP). Receiving too would cost 84 % more edges (357k instead of 194k on a ``data=cpu`` frame,
-6,250 fluid particles) for latents no loss sees directly.
+Boundary nodes never move and carry no loss, and enter the graph only as neighbours of the fluid (model only
+what the scene requires: ``docs/architecture.md#conventions``, convention 15): they send messages and
+receive none (their latents still pass through every block's node MLP). Receiving too would cost 84 % more
+edges (357k instead of 194k on a ``data=cpu`` frame, 6,250 fluid particles) for latents no loss sees
+directly.
 
 Node inputs (paper A.5, DeepMind's ``learning_to_simulate``): the ``H`` previous velocities, standardised
 (boundary: 0 m/s); the distance to each lower and upper domain bound over ``R``, clipped to [-1, 1]; the

@@ -1,7 +1,7 @@
 """The on-disk layout of a generated dataset: scene files, splits and ``metadata.json`` names.
 
-Formats only (DESIGN: ``data/`` holds formats, tasks live above it): :mod:`lagfluid.generate` writes this
-layout, :mod:`lagfluid.data.datasets` reads it. ::
+Formats only (``data/`` holds formats, tasks live above it: ``docs/architecture.md#layers``):
+:mod:`lagfluid.generate` writes this layout, :mod:`lagfluid.data.datasets` reads it. ::
 
     DIR/                                 data.out_dir (default data/<profile>)
       scenes/scene_00007.h5              scene k (layout below)
@@ -59,7 +59,8 @@ radius of the MPS operators), ``periodic_boundary_conditions``, ``sequence_lengt
 differences of positions between uniformly spaced frames, m per frame), ``statistics`` (per feature:
 mean, std, min, max, count), ``splits`` (file lists), ``counts``, ``scenes``, the solver, materials and
 collision settings, ``version``, ``git_commit``, ``generation_time_s``. Every statistic is computed from
-the **train** split only (DESIGN convention 6).
+the **train** split only; they describe the data, a network's normalisation lives in its checkpoint
+(``docs/architecture.md#conventions``, convention 6).
 """
 
 from __future__ import annotations
