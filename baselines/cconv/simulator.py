@@ -22,8 +22,13 @@ from torch import Tensor
 
 from lagfluid.errors import ConfigError, RolloutError
 from lagfluid.memory import rollout_bytes
-from lagfluid.models.checkpoint import CheckpointError, MissingWeightsError, read_checkpoint
-from lagfluid.models.training_range import RangeWarner, checkpoint_range
+from lagfluid.models.checkpoint import (
+    CheckpointError,
+    MissingWeightsError,
+    checkpoint_range,
+    read_checkpoint,
+)
+from lagfluid.models.training_range import RangeWarner
 from lagfluid.physics.stages import StageTimer
 from lagfluid.state import ParticleState
 

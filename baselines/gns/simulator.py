@@ -25,10 +25,10 @@ from lagfluid.config import scene_params
 from lagfluid.errors import RolloutError
 from lagfluid.integrate import semi_implicit_euler
 from lagfluid.memory import memory_needed, pair_bytes, rollout_bytes
-from lagfluid.models.checkpoint import read_checkpoint
+from lagfluid.models.checkpoint import checkpoint_range, read_checkpoint
 from lagfluid.models.mps_simulator import build_mps
 from lagfluid.models.simulator import Simulator
-from lagfluid.models.training_range import RangeWarner, checkpoint_range
+from lagfluid.models.training_range import RangeWarner
 from lagfluid.physics.stages import StageTimer
 from lagfluid.state import ParticleState
 
