@@ -20,17 +20,18 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from lagfluid.errors import ConfigError, RolloutError
-from lagfluid.memory import rollout_bytes
-from lagfluid.models.checkpoint import (
+from lagfluid.zoo import (
     CheckpointError,
+    ConfigError,
     MissingWeightsError,
+    ParticleState,
+    RangeWarner,
+    RolloutError,
+    StageTimer,
     checkpoint_range,
     read_checkpoint,
+    rollout_bytes,
 )
-from lagfluid.models.training_range import RangeWarner
-from lagfluid.physics.stages import StageTimer
-from lagfluid.state import ParticleState
 
 from .boundary import surface_points
 from .network import CConvNet
