@@ -1,9 +1,10 @@
 """The public surface for a model plugin: everything a model outside lagfluid imports from it.
 
-A plugin (``baselines/gns``, ``baselines/cconv``, ``tests/plugins/tinymlp``, a third-party package) imports
-lagfluid from here only; ``tests/test_layers.py`` holds the baselines and the test plugin to it. What is not
-here is internal and may move. Nothing in lagfluid imports this module: it re-exports from the layers below
-the tasks (``docs/architecture.md``). README's "Adding a model" says how the pieces are registered.
+A plugin (``baselines/gns``, ``baselines/cconv``, the test plugin in ``tests/plugins/``, a third-party
+package) imports lagfluid from here only; ``tests/test_layers.py`` holds the baselines and the test plugin to
+it. What is not here is internal and may move. Nothing in lagfluid imports this module: it re-exports from
+the layers below the tasks (``docs/architecture.md``). README's "Adding a model" says how the pieces are
+registered.
 
 The simulator (entry point ``lagfluid.simulators``: ``factory(cfg) -> Simulator``)
     ``Simulator``            the protocol a simulator implements: ``reset``, ``step``, ``dt``,
