@@ -4,4 +4,5 @@ A baseline is four things (``docs/architecture.md#a-model-in-the-zoo``): a simul
 config folder and entry points (``pyproject.toml``: ``lagfluid.simulators``, ``lagfluid.trainables``,
 ``lagfluid.configs``).
 ``lagfluid`` never imports this package; its registry finds the baselines through those entry points.
+The baselines import lagfluid only through its plugin surface, :mod:`lagfluid.zoo` (``tests/test_layers.py``).
 """

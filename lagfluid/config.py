@@ -1,8 +1,9 @@
 """From a composed Hydra config to the objects of a run, shared by the tasks.
 
-Scene parameters and the initial state, the simulator (through the registry, checked against the
-:class:`~lagfluid.models.simulator.Simulator` contract and run at its own time step), the provenance
-attributes every output file carries, and the per-job output folder of a Hydra multirun.
+The initial state (its parameters: :func:`lagfluid.scenes.scene_params`), the simulator (through the
+registry, checked against the :class:`~lagfluid.models.simulator.Simulator` contract and run at its own time
+step), the provenance attributes every output file carries, and the per-job output folder of a Hydra
+multirun.
 """
 
 from __future__ import annotations
@@ -19,13 +20,13 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 import lagfluid
-from lagfluid.errors import ConfigError, SceneError
+from lagfluid.errors import ConfigError
 from lagfluid.models.exact_after import with_exact_after
 from lagfluid.models.simulator import Simulator, check_simulator
 from lagfluid.registry import check_scene_name, get_simulator_factory
 from lagfluid.rollout import Guard
-from lagfluid.scenes import build_scene, trajectory_history, trajectory_params
-from lagfluid.state import ParticleState, SceneParams, parse_dtype
+from lagfluid.scenes import build_scene, scene_builder, scene_params, trajectory_history
+from lagfluid.state import ParticleState, parse_dtype
 
 log = logging.getLogger(__name__)
 
@@ -44,32 +45,6 @@ def git_commit() -> str:
     except (OSError, subprocess.SubprocessError):
         return ""
     return out.stdout.strip() if out.returncode == 0 else ""
-
-
-def _scene_builder(cfg: DictConfig) -> str:
-    return str(cfg.scene.get("builder") or cfg.scene.name)
-
-
-def scene_params(cfg: DictConfig) -> SceneParams:
-    """Physical parameters from ``cfg.scene.params`` with the top-level ``dt`` override applied.
-
-    For ``scene=trajectory`` a null parameter (the config's default) is the trajectory file's value: the
-    command-line ``dt=`` wins over ``scene.params.X``, which wins over the file.
-    """
-    raw = OmegaConf.to_container(cfg.scene.get("params", {}) or {}, resolve=True)
-    if _scene_builder(cfg) == "trajectory":
-        if OmegaConf.is_missing(cfg.scene, "path") or cfg.scene.path is None:
-            raise SceneError("scene=trajectory needs scene.path=<a lagfluid trajectory file (.h5)>")
-        raw = {**trajectory_params(cfg.scene.path), **{k: v for k, v in raw.items() if v is not None}}
-    if "gravity" in raw:
-        try:  # a vector; a scalar (scene.params.gravity=9.8) would fail inside SceneParams' checks
-            raw["gravity"] = tuple(float(v) for v in raw["gravity"])
-        except (TypeError, ValueError):
-            raise SceneError(
-                "scene.params.gravity must be a vector [gx, gy, gz] in m/s^2, e.g. [0, 0, -9.81]; "
-                f"got {raw['gravity']!r}"
-            ) from None
-    return SceneParams(**raw).with_overrides(dt=cfg.dt)
 
 
 # top-level keys every task reads as whole numbers, with their smallest valid value
@@ -161,7 +136,7 @@ def build_initial_state(cfg: DictConfig) -> ParticleState:
     ``cfg.scene.builder`` names the scene builder when a config reuses another scene's builder with other
     options (``dam_small`` is a ``dam``); otherwise the builder is ``cfg.scene.name``.
     """
-    builder = _scene_builder(cfg)
+    builder = scene_builder(cfg)
     check_scene_name(builder)
     dtype = run_dtype(cfg)
     scene = OmegaConf.to_container(cfg.scene, resolve=True)
@@ -264,7 +239,7 @@ def initial_history(cfg: DictConfig, simulator: Simulator) -> list[ParticleState
             scene's); the message names both spacings.
         SceneError: those frames are not uniformly spaced, or the file or frame is bad.
     """
-    if _scene_builder(cfg) != "trajectory" or simulator.history_length == 0:
+    if scene_builder(cfg) != "trajectory" or simulator.history_length == 0:
         return []
     params = scene_params(cfg)
     dt = float(simulator.dt) if simulator.dt is not None else params.dt

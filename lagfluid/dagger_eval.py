@@ -25,6 +25,7 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 
 from lagfluid.errors import ConfigError, RolloutError
 from lagfluid.outputs import write_json
+from lagfluid.plugin_configs import CONF_DIR
 
 log = logging.getLogger(__name__)
 
@@ -37,8 +38,6 @@ def scene_config(name: str) -> DictConfig:
     Raises:
         ConfigError: no such scene file.
     """
-    from lagfluid.run import CONF_DIR
-
     folder = CONF_DIR / "scene"
     path = folder / f"{name}.yaml"
     if not path.is_file():

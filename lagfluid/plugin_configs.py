@@ -1,4 +1,4 @@
-"""The Hydra config folders of plugins: entry-point group ``lagfluid.configs``.
+"""The Hydra config folders: the package's own (:data:`CONF_DIR`) and the plugins' (``lagfluid.configs``).
 
 A plugin (``baselines/gns``, a third-party package) keeps its config group files in a folder of its own
 package, laid out as ``conf/`` is (``model/gns.yaml``, ``train/gns_cpu.yaml``, ``experiment/...``), and
@@ -21,6 +21,7 @@ from pathlib import Path
 from lagfluid.errors import ConfigError
 
 CONFIGS_GROUP = "lagfluid.configs"
+CONF_DIR = Path(__file__).resolve().parent / "conf"  # in the package: a wheel carries it (conf/ links here)
 
 
 def plugin_config_dirs() -> dict[str, Path]:

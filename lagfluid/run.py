@@ -20,10 +20,10 @@ from omegaconf import DictConfig, open_dict
 
 from lagfluid.errors import LagfluidError, Terminated
 from lagfluid.memory import keep_freed_memory
+from lagfluid.plugin_configs import CONF_DIR
 
 log = logging.getLogger("lagfluid")
 
-CONF_DIR = Path(__file__).resolve().parent / "conf"  # in the package: a wheel carries it (conf/ links here)
 TASKS = ("simulate", "generate", "train", "evaluate", "export")
 
 

@@ -764,6 +764,65 @@ PLANTS = [
         "``docs/architecture.md#the-layers``",
         "tests/test_docs.py::test_every_anchor_pointing_into_the_architecture_document_exists",
     ),
+    # issue 36: the plugin surface lagfluid.zoo, the layer table, import circles
+    (
+        "a baseline imports FGN's networks module, not the zoo",
+        "baselines/gns/network.py",
+        "from lagfluid.zoo import ConfigError, Standardizer\n",
+        "from lagfluid.models.fgn.networks import Standardizer\nfrom lagfluid.zoo import ConfigError\n",
+        "tests/test_layers.py::test_imports_point_one_way",
+    ),
+    (
+        "GNS takes scene_params from the task module lagfluid.config again",
+        "baselines/gns/simulator.py",
+        "    scene_params,\n    semi_implicit_euler,\n)\n",
+        "    semi_implicit_euler,\n)\nfrom lagfluid.config import scene_params\n",
+        "tests/test_layers.py::test_imports_point_one_way",
+    ),
+    (
+        "the test plugin imports lagfluid.state directly",
+        "tests/plugins/tinymlp/model.py",
+        "from lagfluid.zoo import (\n    ParticleState,\n",
+        "from lagfluid.state import ParticleState\nfrom lagfluid.zoo import (\n",
+        "tests/test_layers.py::test_imports_point_one_way",
+    ),
+    (
+        "the checkpoint <-> training_range circle put back (a function-level import)",
+        "lagfluid/models/training_range.py",
+        "    lines = []\n",
+        "    from lagfluid.models.checkpoint import read_checkpoint  # noqa: F401\n\n    lines = []\n",
+        "tests/test_layers.py::test_no_import_circles",
+    ),
+    (
+        "a layer table pattern that names no module",
+        "tests/test_layers.py",
+        '"rollout": ("lagfluid.rollout",),',
+        '"rollout": ("lagfluid.rollout", "lagfluid.rollouts.*"),',
+        "tests/test_layers.py::test_every_pattern_names_a_module",
+    ),
+    (
+        "the layer table lists data above scenes, which imports it",
+        "tests/test_layers.py",
+        '    "scenes": ("lagfluid.scenes", "lagfluid.scenes.*"),\n'
+        '    "data": ("lagfluid.data", "lagfluid.data.*"),\n',
+        '    "data": ("lagfluid.data", "lagfluid.data.*"),\n'
+        '    "scenes": ("lagfluid.scenes", "lagfluid.scenes.*"),\n',
+        "tests/test_layers.py::test_every_layer_has_its_rule_and_imports_only_layers_below_it",
+    ),
+    (
+        "a name of lagfluid.zoo missing from its docstring",
+        "lagfluid/zoo.py",
+        "    ``pair_bytes``           the bytes of the neighbour pairs alone\n",
+        "",
+        "tests/test_zoo.py::test_every_name_of_the_surface_is_in_its_docstring_and_in_the_readme",
+    ),
+    (
+        "make_mlp keeps a bias under LayerNorm (state_dict keys change)",
+        "lagfluid/models/layers.py",
+        "bias=not layer_norm",
+        "bias=True",
+        "tests/test_zoo.py::test_the_shared_layers_keep_their_state_dict_keys",
+    ),
 ]
 
 

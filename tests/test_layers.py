@@ -1,26 +1,37 @@
-"""Dependencies point one way (docs/architecture.md#layers): a test reading every import of ``lagfluid/``.
+"""Dependencies point one way (docs/architecture.md#layers): a test that reads every import with ``ast``.
 
-Nothing is imported: each module's source is parsed and every ``import``/``from ... import`` in it,
-at module level or inside a function, is checked against the table below. Run it as a test
-(``pytest tests/test_layers.py``) or as a report for humans::
+Nothing is imported: each module of ``lagfluid/``, the plugins (``baselines/``, ``tests/plugins/``) and
+``benchmarks/`` is parsed and every ``import``/``from ... import`` in it, at module level or inside a
+function, is checked against the table below: a layer imports only the layers it lists, the plugins only the
+public surface :mod:`lagfluid.zoo`, no two modules import each other through any chain (a circle), and
+every pattern of the table names a module. Run it as a test (``pytest tests/test_layers.py``) or as a
+report for humans::
 
     python -m tests.test_layers
 
-which prints the layers, every violation, and the largest module of lagfluid/baselines/benchmarks.
+which prints the layers, every violation and circle, and the largest module of lagfluid/baselines/benchmarks.
 """
 
 from __future__ import annotations
 
 import ast
+import itertools
 import sys
 from dataclasses import dataclass
 from fnmatch import fnmatchcase
 from pathlib import Path
 
 # ---------------------------------------------------------------------------------------------------
-# The rule, as data. Layers from the top down; a module is in the layer whose pattern names it most
-# specifically (an exact name beats a wildcard, a longer wildcard beats a shorter one).
+# The rule, as data. Layers from the top down: a layer imports only layers listed below it (checked). A
+# module is in the layer whose pattern names it most specifically (an exact name beats a wildcard, a longer
+# wildcard beats a shorter one); every pattern names at least one module (checked).
 LAYERS: dict[str, tuple[str, ...]] = {
+    # the tables, speed and validation harnesses and studies: not installed, free to import anything
+    "benchmarks": ("benchmarks", "benchmarks.*"),
+    # models outside lagfluid, found by entry point (the baselines, the test plugin): the zoo only
+    "plugins": ("baselines", "baselines.*", "tests.plugins.*"),
+    # the public plugin surface: names re-exported from the layers below, never from the tasks
+    "zoo": ("lagfluid.zoo",),
     "tasks": (
         "lagfluid.run",
         "lagfluid.retrain",  # the retrain-everything sweep of lagfluid.run
@@ -29,42 +40,37 @@ LAYERS: dict[str, tuple[str, ...]] = {
         "lagfluid.outputs",  # a run's output files, replaced together
         "lagfluid.locks",  # the locks on what a run writes, and their Hydra callback
         "lagfluid.simulate",
-        "lagfluid.simulate.*",
         "lagfluid.simulate_resume",  # task=simulate's resume=true checkpoints
         "lagfluid.generate",
         "lagfluid.generate.*",
         "lagfluid.train",
-        "lagfluid.train.*",
         "lagfluid.onpolicy_rounds",  # task=train's DAgger rounds (generate, then fine-tune)
         "lagfluid.dagger_rounds",  # task=train's DAgger rounds of end-to-end models
         "lagfluid.dagger_eval",  # their per-round dam rollout
         "lagfluid.evaluate*",
-        "lagfluid.tables*",
         "lagfluid.export",
         "lagfluid.export.*",  # task=export: ParaView series and animations of rollout files
         "lagfluid.distributed",  # task=train under torchrun
-        "lagfluid.tasks",
-        "lagfluid.tasks.*",
     ),
     "rollout": ("lagfluid.rollout",),
     "models": ("lagfluid.models", "lagfluid.models.*"),
     "physics": ("lagfluid.physics", "lagfluid.physics.*"),
     "metrics": ("lagfluid.metrics",),
-    "data": ("lagfluid.data", "lagfluid.data.*"),
     "registry": ("lagfluid.registry",),
     "scenes": ("lagfluid.scenes", "lagfluid.scenes.*"),
+    "data": ("lagfluid.data", "lagfluid.data.*"),
     "viz": ("lagfluid.viz",),
     "operators": (
         "lagfluid.physics.operators",
         "lagfluid.physics._*_numba",
         "lagfluid.neighbors",
-        "lagfluid.neighbors.*",
         "lagfluid.neighbor_list",
         "lagfluid.pair_kernels",
         "lagfluid._pair_kernels_numba",
         "lagfluid.integrate",
     ),
-    # plugin_configs: the config-resolver lagfluid/__init__ registers (stdlib and errors only)
+    # plugin_configs: the config folders (core and plugins') and the resolver lagfluid/__init__ registers
+    # (stdlib and errors only)
     # progress: the rollout's and the trainer's bar or log lines (tqdm and logging only)
     # device_constants: small constant tensors cached per device (torch only)
     # memory: the allocator setting and a rollout's memory estimate (stdlib, numpy; the state for its types),
@@ -80,9 +86,16 @@ LAYERS: dict[str, tuple[str, ...]] = {
     ),
 }
 
+_LAGFLUID = tuple(layer for layer in LAYERS if layer not in ("benchmarks", "plugins"))
+
 # What each layer may import besides its own modules.
 MAY_IMPORT: dict[str, frozenset[str]] = {
-    "tasks": frozenset(LAYERS) - {"tasks"},
+    "benchmarks": frozenset(LAYERS) - {"benchmarks"},
+    # what a plugin needs of lagfluid is re-exported there; a plugin never imports another's internals
+    "plugins": frozenset({"zoo"}),
+    # nothing of the tasks (a plugin is no task), nothing in lagfluid imports the zoo
+    "zoo": frozenset(_LAGFLUID) - {"zoo", "tasks"},
+    "tasks": frozenset(_LAGFLUID) - {"zoo", "tasks"},
     # the loop and guard only: files, metrics and the registry are the tasks'
     "rollout": frozenset({"models", "base"}),
     # a model's trainables provide their datasets, hence data
@@ -91,23 +104,28 @@ MAY_IMPORT: dict[str, frozenset[str]] = {
     "physics": frozenset({"operators", "base"}),
     # simulator-neutral: no models, no split-step stages, no MPS or PPE references
     "metrics": frozenset({"operators", "base"}),
-    # formats only: never tasks, rollout, models or physics
-    "data": frozenset({"operators", "base"}),
     # module level only: built-ins are loaded lazily by string, inside functions
     "registry": frozenset({"base"}),
     # a scene may be read from a stored trajectory (scene=trajectory)
     "scenes": frozenset({"data", "operators", "base"}),
+    # formats only: never tasks, rollout, models or physics
+    "data": frozenset({"operators", "base"}),
     "viz": frozenset({"base"}),
     "operators": frozenset({"base"}),
     "base": frozenset(),
 }
 
-# Layers whose imports inside functions are not checked (lazy loading is their job).
+# Layers whose imports inside functions are not checked against the table (lazy loading is their job); the
+# circle check sees them all the same.
 LAZY_INSIDE_FUNCTIONS: frozenset[str] = frozenset({"registry"})
 
 # Top-level packages lagfluid never imports: plugins import lagfluid and are found by entry point;
 # benchmarks and tests are not installed with the package.
 OUTSIDE: tuple[str, ...] = ("baselines", "benchmarks", "tests")
+
+# What the test reads: the package, the plugins and the benchmarks (tests/ besides its plugins may import
+# anything and is imported by nothing).
+SCANNED: tuple[str, ...] = ("lagfluid", "baselines", "benchmarks", "tests/plugins")
 
 # ---------------------------------------------------------------------------------------------------
 
@@ -217,13 +235,18 @@ def check(
             violations.append(Violation(importer, "-", 0, "the module is in no layer: add it to LAYERS"))
             continue
         for imported, line, in_function in edges:
-            if imported.split(".")[0] in OUTSIDE:
+            top = imported.split(".")[0]
+            if importer.split(".")[0] == "lagfluid" and top in OUTSIDE:
                 rule = f"lagfluid never imports {', '.join(OUTSIDE)} (plugins are found by entry point)"
                 violations.append(Violation(importer, imported, line, rule))
                 continue
             if in_function and source_layer in LAZY_INSIDE_FUNCTIONS:
                 continue
             target_layer = layer_of(imported, layers)
+            if target_layer is None and top == "tests":
+                rule = "the tests are no layer: nothing outside them imports them (their plugins aside)"
+                violations.append(Violation(importer, imported, line, rule))
+                continue
             if target_layer is None or target_layer == source_layer:
                 continue  # an unknown target is reported as its own module's "no layer"
             if target_layer not in may_import[source_layer]:
@@ -235,10 +258,108 @@ def check(
     return violations
 
 
-def package_sources(root: Path = REPO, package: str = "lagfluid") -> dict[str, str]:
-    """``{relative path: source}`` of every ``.py`` file of ``package`` under ``root``."""
+def circles(sources: dict[str, str]) -> list[list[tuple[str, int, bool]]]:
+    """Every import circle in ``sources``: one shortest loop per strongly connected group of modules.
+
+    Imports inside functions count (they only postpone the circle to the first call). A module importing
+    itself or its own package's name is no circle.
+
+    Returns:
+        Per circle the ``(module, line of its import of the next, inside a function)`` steps, starting at
+        the group's first module by name and coming back to it.
+    """
+    graph = {
+        module: {target: (line, inside) for target, line, inside in reversed(edges) if target != module}
+        for module, edges in import_graph(sources).items()
+    }
+    found = []
+    for group in _strongly_connected(graph):
+        start = min(group)
+        # breadth first from start inside the group until it comes back: a shortest loop through start
+        came_from: dict[str, str] = {}
+        frontier = [start]
+        while start not in came_from:
+            reached = []
+            for module in frontier:
+                for target in sorted(graph[module]):
+                    if target in group and target not in came_from:
+                        came_from[target] = module
+                        reached.append(target)
+            frontier = reached
+        back = [start]
+        while came_from[back[-1]] != start:
+            back.append(came_from[back[-1]])
+        loop = [start, *reversed(back[1:]), start]
+        found.append([(a, *graph[a][b]) for a, b in itertools.pairwise(loop)])
+    return found
+
+
+def _strongly_connected(graph: dict[str, dict[str, tuple[int, bool]]]) -> list[set[str]]:
+    """The groups of two or more modules of ``graph`` that reach each other (Tarjan's algorithm)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    groups = []
+
+    def visit(module: str) -> None:
+        index[module] = low[module] = len(index)
+        stack.append(module)
+        for target in graph[module]:
+            if target not in graph:
+                continue  # a third-party or unknown name
+            if target not in index:
+                visit(target)
+                low[module] = min(low[module], low[target])
+            elif target in stack:
+                low[module] = min(low[module], index[target])
+        if low[module] == index[module]:
+            group = set()
+            while not group or module not in group:
+                group.add(stack.pop())
+            if len(group) > 1:
+                groups.append(group)
+
+    for module in sorted(graph):
+        if module not in index:
+            visit(module)
+    return groups
+
+
+def describe_circle(circle: list[tuple[str, int, bool]]) -> str:
+    """``a (line 3) -> b (line 131, inside a function) -> a``."""
+    steps = [f"{m} (line {line}{', inside a function' if inside else ''})" for m, line, inside in circle]
+    return " -> ".join([*steps, circle[0][0]])
+
+
+def dead_patterns(sources: dict[str, str], layers: dict[str, tuple[str, ...]] = LAYERS) -> list[str]:
+    """The patterns of ``layers`` that name no module of ``sources``."""
+    modules = list(import_graph(sources))
+    return [
+        f"{layer}: {pattern}"
+        for layer, patterns in layers.items()
+        for pattern in patterns
+        if not any(fnmatchcase(module, pattern) for module in modules)
+    ]
+
+
+def upward_rules(
+    layers: dict[str, tuple[str, ...]] = LAYERS, may_import: dict[str, frozenset[str]] = MAY_IMPORT
+) -> list[str]:
+    """Every ``may_import`` entry that lets a layer import itself or one listed above it."""
+    order = list(layers)
+    return [
+        f"{layer} may import {allowed}, listed above it"
+        for layer, allowed_set in may_import.items()
+        for allowed in sorted(allowed_set)
+        if order.index(allowed) <= order.index(layer)
+    ]
+
+
+def package_sources(root: Path = REPO, packages: tuple[str, ...] = SCANNED) -> dict[str, str]:
+    """``{relative path: source}`` of every ``.py`` file under the folders ``packages`` of ``root``."""
     return {
         path.relative_to(root).as_posix(): path.read_text(encoding="utf-8")
+        for package in packages
         for path in sorted((root / package).rglob("*.py"))
     }
 
@@ -258,15 +379,25 @@ def largest_module(root: Path = REPO, packages: tuple[str, ...] = ("lagfluid", "
 # --- the tree ---------------------------------------------------------------------------------------
 
 
-def test_lagfluid_imports_point_one_way():
+def test_imports_point_one_way():
+    """lagfluid by its layers, the plugins through lagfluid.zoo only, the benchmarks above both."""
     new = check(package_sources())
     assert not new, "imports against the layer rule (tests/test_layers.py):\n" + "\n".join(map(str, new))
 
 
-def test_every_layer_has_its_rule():
+def test_no_import_circles():
+    found = circles(package_sources())
+    assert not found, "import circles:\n" + "\n".join(map(describe_circle, found))
+
+
+def test_every_pattern_names_a_module():
+    dead = dead_patterns(package_sources())
+    assert not dead, "patterns of LAYERS that match no module (remove them):\n" + "\n".join(dead)
+
+
+def test_every_layer_has_its_rule_and_imports_only_layers_below_it():
     assert set(MAY_IMPORT) == set(LAYERS)
-    for layer, allowed in MAY_IMPORT.items():
-        assert allowed <= set(LAYERS) - {layer}, layer
+    assert not upward_rules(), "LAYERS lists them top down:\n" + "\n".join(upward_rules())
 
 
 # --- the checker, on synthetic module maps ---------------------------------------------------------
@@ -341,6 +472,74 @@ def test_checker_forbids_baselines_and_unknown_modules():
     assert "never imports baselines" in found[("lagfluid.viz", "baselines.gns")]
 
 
+def test_checker_holds_plugins_to_the_zoo_and_lets_benchmarks_import_anything():
+    sources = {
+        "lagfluid/zoo.py": "from lagfluid.models.fgn.networks import Standardizer\n",
+        "lagfluid/models/__init__.py": "",
+        "lagfluid/models/fgn/__init__.py": "",
+        "lagfluid/models/fgn/networks.py": "",
+        "baselines/gns/network.py": "from lagfluid.zoo import Standardizer\nfrom . import graph\n",
+        "baselines/gns/graph.py": "def f():\n    from lagfluid.models.fgn.networks import Standardizer\n",
+        "benchmarks/study.py": "import baselines.gns.network\nfrom lagfluid.models.fgn import networks\n",
+        "tests/plugins/tiny/model.py": "from lagfluid.zoo import Standardizer\nimport benchmarks.study\n",
+    }
+    found = {(v.importer, v.imported, v.line): v.rule for v in check(sources)}
+    assert found == {
+        ("baselines.gns.graph", "lagfluid.models.fgn.networks", 2): (
+            "layer 'plugins' may not import layer 'models' (allowed: zoo)"
+        ),
+        ("tests.plugins.tiny.model", "benchmarks.study", 2): (
+            "layer 'plugins' may not import layer 'benchmarks' (allowed: zoo)"
+        ),
+    }
+
+
+def test_checker_forbids_the_zoo_to_import_tasks_and_tasks_to_import_the_zoo():
+    sources = {
+        "lagfluid/zoo.py": "from lagfluid.config import scene_params\n",
+        "lagfluid/config.py": "",
+        "lagfluid/run.py": "import lagfluid.zoo\n",
+    }
+    found = {(v.importer, v.imported): v.rule for v in check(sources)}
+    assert set(found) == {("lagfluid.zoo", "lagfluid.config"), ("lagfluid.run", "lagfluid.zoo")}
+    assert "layer 'zoo' may not import layer 'tasks'" in found[("lagfluid.zoo", "lagfluid.config")]
+    assert "layer 'tasks' may not import layer 'zoo'" in found[("lagfluid.run", "lagfluid.zoo")]
+
+
+def test_circles_are_found_through_function_level_imports_as_a_shortest_loop():
+    sources = {
+        "lagfluid/models/__init__.py": "",
+        "lagfluid/models/checkpoint.py": "import torch\nfrom lagfluid.models.training_range import r\n",
+        "lagfluid/models/training_range.py": "def f():\n    from lagfluid.models.checkpoint import read\n",
+        "lagfluid/a.py": "import lagfluid.b\nimport lagfluid.c\n",
+        "lagfluid/b.py": "import lagfluid.c\n",
+        "lagfluid/c.py": "from lagfluid import a\n",
+        "lagfluid/d.py": "import lagfluid.a\nimport lagfluid.d\n",  # into a circle, and itself: not one
+    }
+    found = sorted(circles(sources))
+    assert found == [
+        [("lagfluid.a", 2, False), ("lagfluid.c", 1, False)],  # a -> c -> a, not a -> b -> c -> a
+        [("lagfluid.models.checkpoint", 2, False), ("lagfluid.models.training_range", 2, True)],
+    ]
+    assert describe_circle(found[1]) == (
+        "lagfluid.models.checkpoint (line 2) -> lagfluid.models.training_range (line 2, inside a function) "
+        "-> lagfluid.models.checkpoint"
+    )
+    del sources["lagfluid/models/training_range.py"]
+    sources["lagfluid/c.py"] = ""
+    assert circles(sources) == []
+
+
+def test_dead_patterns_and_upward_rules_are_named():
+    sources = {"lagfluid/rollout.py": "", "lagfluid/state.py": ""}
+    layers = {"rollout": ("lagfluid.rollout", "lagfluid.tasks.*"), "base": ("lagfluid.state",)}
+    assert dead_patterns(sources, layers) == ["rollout: lagfluid.tasks.*"]
+    assert upward_rules(layers, {"rollout": frozenset({"base"}), "base": frozenset()}) == []
+    assert upward_rules(layers, {"rollout": frozenset(), "base": frozenset({"rollout"})}) == [
+        "base may import rollout, listed above it"
+    ]
+
+
 def test_layer_of_prefers_the_most_specific_pattern():
     assert layer_of("lagfluid.physics.operators") == "operators"
     assert layer_of("lagfluid.physics._ppe_numba") == "operators"
@@ -350,18 +549,28 @@ def test_layer_of_prefers_the_most_specific_pattern():
 
 
 def main() -> int:
-    """Print the layers, every violation and the largest module."""
+    """Print the layers, every violation, circle and dead pattern, and the largest module."""
     print("layers, top down (each may import its own and the listed layers):")
     for layer, patterns in LAYERS.items():
         print(f"  {layer:<10} {', '.join(patterns)}")
         print(f"  {'':<10} -> {', '.join(sorted(MAY_IMPORT[layer])) or 'nothing'}")
-    violations = check(package_sources())
-    print(f"\nviolations: {len(violations)}")
-    for v in violations:
-        print(f"  {v}")
-    path, lines = largest_module()
-    print(f"\nlargest module: {path} ({lines} lines)")
-    return int(bool(violations))
+    sources = package_sources()
+    graph = import_graph(sources)
+    arrows = sum(len({target for target, _, _ in edges if target in graph}) for edges in graph.values())
+    print(f"\nmodules read: {len(graph)} ({', '.join(SCANNED)}), imports between them: {arrows}")
+    problems = [
+        ("violations", list(map(str, check(sources)))),
+        ("circles", list(map(describe_circle, circles(sources)))),
+        ("patterns naming no module", dead_patterns(sources)),
+        ("rules pointing up", upward_rules()),
+    ]
+    for title, lines in problems:
+        print(f"\n{title}: {len(lines)}")
+        for line in lines:
+            print(f"  {line}")
+    path, size = largest_module()
+    print(f"\nlargest module: {path} ({size} lines)")
+    return int(any(lines for _, lines in problems))
 
 
 if __name__ == "__main__":

@@ -16,7 +16,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from lagfluid.neighbors import radius_graph
+from lagfluid.zoo import radius_graph
 
 __all__ = ["SURFACE_RADIUS", "SURFACE_THRESHOLD", "surface_points"]
 

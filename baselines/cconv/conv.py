@@ -38,10 +38,7 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from lagfluid import pair_kernels
-from lagfluid.device_constants import device_constant
-from lagfluid.errors import ConfigError
-from lagfluid.neighbors import edge_vectors, radius_graph
+from lagfluid.zoo import ConfigError, device_constant, edge_vectors, pair_kernels, radius_graph
 
 __all__ = [
     "MAPPINGS",

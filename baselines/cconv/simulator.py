@@ -20,12 +20,18 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from lagfluid.errors import ConfigError, RolloutError
-from lagfluid.memory import rollout_bytes
-from lagfluid.models.checkpoint import CheckpointError, MissingWeightsError, read_checkpoint
-from lagfluid.models.training_range import RangeWarner, checkpoint_range
-from lagfluid.physics.stages import StageTimer
-from lagfluid.state import ParticleState
+from lagfluid.zoo import (
+    CheckpointError,
+    ConfigError,
+    MissingWeightsError,
+    ParticleState,
+    RangeWarner,
+    RolloutError,
+    StageTimer,
+    checkpoint_range,
+    read_checkpoint,
+    rollout_bytes,
+)
 
 from .boundary import surface_points
 from .network import CConvNet

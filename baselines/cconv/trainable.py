@@ -43,10 +43,7 @@ from omegaconf import OmegaConf
 from torch import Tensor, nn
 from torch_geometric.data import Batch, Data
 
-from lagfluid.data.datasets import StepWindows
-from lagfluid.errors import ConfigError, LagfluidError
-from lagfluid.neighbors import radius_graph
-from lagfluid.state import ParticleType
+from lagfluid.zoo import ConfigError, LagfluidError, ParticleType, StepWindows, radius_graph
 
 from .boundary import SURFACE_RADIUS, surface_points
 from .network import CConvNet

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from lagfluid.neighbors import radius_graph
+from lagfluid.zoo import radius_graph
 
 from .network import GNSNet
 

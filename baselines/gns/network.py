@@ -11,7 +11,7 @@ pair closer than the connectivity radius ``R``; :mod:`baselines.gns.graph`)::
 
 Every MLP has ``mlp_layers`` hidden layers of ``hidden`` units with ReLU and a LayerNorm on its output,
 except the decoder's. The statistics that standardise the inputs and the output live in buffers (their
-:class:`~lagfluid.models.fgn.networks.Standardizer`), so a checkpoint's ``state_dict`` carries them.
+:class:`~lagfluid.zoo.Standardizer`), so a checkpoint's ``state_dict`` carries them.
 """
 
 from __future__ import annotations
@@ -23,8 +23,7 @@ from torch import Tensor, nn
 from torch.nn import functional as F
 from torch_geometric.nn import MessagePassing
 
-from lagfluid.errors import ConfigError
-from lagfluid.models.fgn.networks import Standardizer
+from lagfluid.zoo import ConfigError, Standardizer
 
 __all__ = ["GNSNet", "InteractionNetwork", "mlp", "node_feature_count"]
 

@@ -21,16 +21,21 @@ from typing import Any
 import torch
 from omegaconf import OmegaConf
 
-from lagfluid.config import scene_params
-from lagfluid.errors import RolloutError
-from lagfluid.integrate import semi_implicit_euler
-from lagfluid.memory import memory_needed, pair_bytes, rollout_bytes
-from lagfluid.models.checkpoint import read_checkpoint
-from lagfluid.models.mps_simulator import build_mps
-from lagfluid.models.simulator import Simulator
-from lagfluid.models.training_range import RangeWarner, checkpoint_range
-from lagfluid.physics.stages import StageTimer
-from lagfluid.state import ParticleState
+from lagfluid.zoo import (
+    ParticleState,
+    RangeWarner,
+    RolloutError,
+    Simulator,
+    StageTimer,
+    build_mps,
+    checkpoint_range,
+    memory_needed,
+    pair_bytes,
+    read_checkpoint,
+    rollout_bytes,
+    scene_params,
+    semi_implicit_euler,
+)
 
 from .graph import build_graph, fluid_acceleration
 from .network import GNSNet

@@ -39,11 +39,15 @@ from omegaconf import OmegaConf
 from torch import Tensor, nn
 from torch_geometric.data import Batch, Data
 
-from lagfluid.data.expert_windows import trajectory_windows
-from lagfluid.data.symmetry import HorizontalSymmetry
-from lagfluid.errors import ConfigError, LagfluidError
-from lagfluid.integrate import acceleration_from_positions, semi_implicit_euler
-from lagfluid.state import ParticleType
+from lagfluid.zoo import (
+    ConfigError,
+    HorizontalSymmetry,
+    LagfluidError,
+    ParticleType,
+    acceleration_from_positions,
+    semi_implicit_euler,
+    trajectory_windows,
+)
 
 from .graph import build_graph, fluid_acceleration
 from .network import GNSNet

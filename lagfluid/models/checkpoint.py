@@ -30,7 +30,7 @@ import torch
 from torch import nn
 
 from lagfluid.errors import LagfluidError
-from lagfluid.models.training_range import range_from_checkpoint_meta
+from lagfluid.models.training_range import UNITS, range_from_checkpoint_meta
 
 CHECKPOINT_FORMAT = "lagfluid-network"
 LEGACY_MODEL = "fgn"
@@ -115,6 +115,20 @@ def _check_weights(path: Path, state: dict[str, Any]) -> None:
                 f"{path}: normalisation scale {name} has values <= 0 ({tensor.min().item():.3g}): the "
                 "statistics are broken; retrain or re-export the network"
             )
+
+
+def checkpoint_range(
+    path: str | os.PathLike, quantities: Sequence[str] = tuple(UNITS)
+) -> dict[str, list[float]] | None:
+    """The training range recorded in (or rebuilt for) the checkpoint at ``path``.
+
+    Only ``quantities`` (:data:`lagfluid.models.training_range.UNITS`' keys) are kept; None when the
+    checkpoint records none and its training data is gone.
+
+    Raises:
+        CheckpointError: see :func:`read_checkpoint`.
+    """
+    return range_from_checkpoint_meta(read_checkpoint(path).get("meta") or {}, quantities)
 
 
 def export_weights(

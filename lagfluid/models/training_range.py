@@ -122,12 +122,3 @@ class RangeWarner:
             if line not in self._said:
                 self._said.add(line)
                 log.warning("%s", line)
-
-
-def checkpoint_range(
-    path: str | Path, quantities: Sequence[str] = tuple(UNITS)
-) -> dict[str, list[float]] | None:
-    """The training range recorded in (or rebuilt for) the checkpoint at ``path``."""
-    from lagfluid.models.checkpoint import read_checkpoint
-
-    return range_from_checkpoint_meta(read_checkpoint(path).get("meta") or {}, quantities)

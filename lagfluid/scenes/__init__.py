@@ -50,6 +50,7 @@ from lagfluid.scenes.library import (
     waterfall_layout,
 )
 from lagfluid.scenes.mesh import mesh_scene
+from lagfluid.scenes.params import scene_builder, scene_params
 from lagfluid.scenes.trajectory import (
     from_trajectory,
     trajectory_history,
@@ -88,6 +89,8 @@ __all__ = [
     "random_scene",
     "read_grid",
     "save_grid",
+    "scene_builder",
+    "scene_params",
     "trajectory_history",
     "trajectory_params",
     "trajectory_states",

@@ -4,7 +4,7 @@ Inputs of fluid particle ``i`` (radius ``r = radius * l0``, MPS kernel ``w``): t
 ``sum_j w_ij (x_j - x_i) / r`` (3), ``sum_j w_ij (v_j - v_i)`` (3) and ``sum_j w_ij`` (1) over every
 particle ``j`` within ``r`` (boundary particles included, velocity 0). Relative positions and velocities
 only: translation- and permutation-invariant by construction. Output: the acceleration ``a_i``; the step
-is :func:`lagfluid.integrate.semi_implicit_euler` at the spacing of the training frames (the model's own
+is :func:`lagfluid.zoo.semi_implicit_euler` at the spacing of the training frames (the model's own
 ``dt``), and the training target is that update's inverse (:func:`acceleration_from_positions`).
 """
 
@@ -19,12 +19,16 @@ from omegaconf import OmegaConf
 from torch import Tensor, nn
 from torch_geometric.data import Batch, Data
 
-from lagfluid.data.datasets import TrajectoryWindows
-from lagfluid.integrate import acceleration_from_positions, semi_implicit_euler
-from lagfluid.models.checkpoint import read_checkpoint
-from lagfluid.neighbors import radius_graph
-from lagfluid.physics.operators import kernel
-from lagfluid.state import ParticleState, ParticleType
+from lagfluid.zoo import (
+    ParticleState,
+    ParticleType,
+    TrajectoryWindows,
+    acceleration_from_positions,
+    kernel,
+    radius_graph,
+    read_checkpoint,
+    semi_implicit_euler,
+)
 
 NAME = "tiny_mlp"
 SHIPPED = Path(__file__).resolve().parent / "weights"
