@@ -18,65 +18,17 @@ import os
 import time
 from pathlib import Path
 
-import h5py
 import numpy as np
 import torch
 
+from benchmarks.gns_one_step import rollout_errors
 from benchmarks.provenance import markdown, provenance
 from benchmarks.tables.config import compose_config
-from lagfluid.config import (
-    at_simulator_time_step,
-    build_initial_state,
-    build_simulator,
-    initial_history,
-    run_guard,
-)
 from lagfluid.data.datasets import load_metadata
-from lagfluid.errors import RolloutError
-from lagfluid.metrics import chamfer_distance
 from lagfluid.models.checkpoint import read_checkpoint
-from lagfluid.rollout import rollout
 from lagfluid.train import train
 
 RESULTS = Path(__file__).resolve().parent / "results"
-
-
-def rollout_errors(overrides: list[str], scene: Path, frame: int, steps: int) -> dict[str, float]:
-    """Roll GNS out from ``frame`` of ``scene`` and compare each frame with the file's."""
-    cfg = compose_config([*overrides, "scene=trajectory", f"scene.path={scene}", f"scene.frame={frame}"])
-    sim = build_simulator(cfg)
-    state = at_simulator_time_step(build_initial_state(cfg), sim, cfg)
-    with h5py.File(scene, "r") as f:
-        truth = f["00000/position"][frame : frame + steps + 1]
-    steps = truth.shape[0] - 1
-    frames: list[np.ndarray] = []
-    stopped = float("nan")
-    try:
-        rollout(
-            sim,
-            state,
-            steps,
-            guard=run_guard(cfg, sim),
-            history=initial_history(cfg, sim),
-            on_frame=lambda s: frames.append(s.pos[: s.n_fluid].cpu().numpy()),
-        )
-    except RolloutError as err:
-        stopped = float(len(frames))
-        print(f"  stopped: {err}", flush=True)
-
-    def rmse(k: int) -> float:
-        if k >= len(frames):
-            return float("nan")
-        return float(np.sqrt(((frames[k] - truth[k]) ** 2).sum(axis=1).mean()))
-
-    chamfer = [chamfer_distance(p, t) for p, t in zip(frames[1:], truth[1 : len(frames)], strict=False)]
-    return {
-        "rmse_1_mm": 1e3 * rmse(1),
-        "rmse_10_mm": 1e3 * rmse(10),
-        f"rmse_{steps}_mm": 1e3 * rmse(steps),
-        "chamfer_mean_mm": 1e3 * float(np.mean(chamfer)) if chamfer else float("nan"),
-        "stopped_at_frame": stopped,
-    }
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -5,7 +5,7 @@
   the target's RMS (a relative error), and the position error one frame later (mm).
 * **Rollouts** from frames ``--frames`` of the test scene (history from the file) for ``--steps`` frames
   of 8 ms, against the stored frames: position RMSE after 1, 10 and ``--steps`` frames, mean Chamfer
-  distance, and where the rollout guard stopped it (:func:`benchmarks.gns_noise.rollout_errors`).
+  distance, and where the rollout guard stopped it (:func:`rollout_errors`).
 
 Usage::
 
@@ -21,14 +21,25 @@ import csv
 import os
 from pathlib import Path
 
+import h5py
+import numpy as np
 import torch
 from torch_geometric.data import Batch
 
-from benchmarks.gns_noise import rollout_errors
 from benchmarks.provenance import markdown, provenance
 from benchmarks.tables.config import compose_config
+from lagfluid.config import (
+    at_simulator_time_step,
+    build_initial_state,
+    build_simulator,
+    initial_history,
+    run_guard,
+)
 from lagfluid.data.datasets import TrajectoryWindows, load_metadata
+from lagfluid.errors import RolloutError
+from lagfluid.metrics import chamfer_distance
 from lagfluid.registry import get_trainables
+from lagfluid.rollout import rollout
 
 RESULTS = Path(__file__).resolve().parent / "results"
 
@@ -57,6 +68,44 @@ def one_step(weights: Path, data: str) -> dict[str, float]:
         "rms_acceleration_error_m_s2": (err2 / count) ** 0.5,
         "relative_acceleration_error": (err2 / tgt2) ** 0.5,
         "position_error_1_frame_mm": 1e3 * (pos2 / count) ** 0.5,
+    }
+
+
+def rollout_errors(overrides: list[str], scene: Path, frame: int, steps: int) -> dict[str, float]:
+    """Roll GNS out from ``frame`` of ``scene`` and compare each frame with the file's."""
+    cfg = compose_config([*overrides, "scene=trajectory", f"scene.path={scene}", f"scene.frame={frame}"])
+    sim = build_simulator(cfg)
+    state = at_simulator_time_step(build_initial_state(cfg), sim, cfg)
+    with h5py.File(scene, "r") as f:
+        truth = f["00000/position"][frame : frame + steps + 1]
+    steps = truth.shape[0] - 1
+    frames: list[np.ndarray] = []
+    stopped = float("nan")
+    try:
+        rollout(
+            sim,
+            state,
+            steps,
+            guard=run_guard(cfg, sim),
+            history=initial_history(cfg, sim),
+            on_frame=lambda s: frames.append(s.pos[: s.n_fluid].cpu().numpy()),
+        )
+    except RolloutError as err:
+        stopped = float(len(frames))
+        print(f"  stopped: {err}", flush=True)
+
+    def rmse(k: int) -> float:
+        if k >= len(frames):
+            return float("nan")
+        return float(np.sqrt(((frames[k] - truth[k]) ** 2).sum(axis=1).mean()))
+
+    chamfer = [chamfer_distance(p, t) for p, t in zip(frames[1:], truth[1 : len(frames)], strict=False)]
+    return {
+        "rmse_1_mm": 1e3 * rmse(1),
+        "rmse_10_mm": 1e3 * rmse(10),
+        f"rmse_{steps}_mm": 1e3 * rmse(steps),
+        "chamfer_mean_mm": 1e3 * float(np.mean(chamfer)) if chamfer else float("nan"),
+        "stopped_at_frame": stopped,
     }
 
 
