@@ -419,7 +419,7 @@ def test_fluid_target_graph_sliced_from_the_cached_full_graph():
 
 
 def test_resting_variants_diagnostic_prints_a_row_per_variant(capsys):
-    from benchmarks.resting_variants import VARIANTS, main
+    from benchmarks.studies.resting_variants import VARIANTS, main
 
     main(["--steps", "2"])
     rows = [line for line in capsys.readouterr().out.splitlines() if line.startswith("| ")]

@@ -1,6 +1,6 @@
 """Diagnostic for the resting column's spurious motion: the same column under solver variants.
 
-    python -m benchmarks.resting_variants [--steps 500] [--threads 2] [--only VARIANT ...]
+    python -m benchmarks.studies.resting_variants [--steps 500] [--threads 2] [--only VARIANT ...]
 
 A 10 x 10 x 20 fluid column at rest in its tank (the hydrostatic case of ``benchmarks.validate_mps``) is
 rolled out for ``--steps`` steps (1 s at the default dt) with each variant of ``conf/solver/mps.yaml``
@@ -15,6 +15,9 @@ pushed further (~6.3 m/s^2 per l0, so an e-folding time of ~0.1 s at l0 = 0.05 m
 slows the growth ~5x, a smaller ``re_laplacian`` further. The dt 1 ms rows show the authors' per-step density
 weight making the column noisier as dt falls, and ``source_density_reference_dt`` undoing that; what is left
 is fed mostly by the density term itself, which ``solver=mps_corrected`` slows (see docs/validation.md).
+
+It prints its table; the committed runs (tables and commands) are in
+``benchmarks/results/resting_variants.md``.
 """
 
 from __future__ import annotations

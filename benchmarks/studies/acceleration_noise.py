@@ -17,7 +17,7 @@ no smooth model fits: its loss stalls near the trivial predictor's.
 
 Usage::
 
-    python -m benchmarks.acceleration_noise --data data/cpu [--every 5]
+    python -m benchmarks.studies.acceleration_noise --data data/cpu [--every 5]
 
 Writes ``benchmarks/results/acceleration_noise.{md,csv}`` with provenance.
 """
@@ -38,7 +38,7 @@ from benchmarks.provenance import provenance, write_results
 from lagfluid.data.datasets import StepWindows, TrajectoryWindows, load_metadata
 from lagfluid.state import ParticleType
 
-RESULTS = Path(__file__).resolve().parent / "results"
+RESULTS = Path(__file__).resolve().parents[1] / "results"  # benchmarks/results, where its results are cited
 PHASES = ((0, 40), (40, 160), (160, 10**9))
 """Solver-step ranges of the window starts: the start (at rest or falling), the first impact, the rest."""
 
@@ -127,9 +127,9 @@ def main(argv: list[str] | None = None) -> None:
     start, load = time.perf_counter(), os.getloadavg()[0]
     rows = measure(args.data, args.every, args.radius)
     prov = provenance(
-        "benchmarks.acceleration_noise",
+        "benchmarks.studies.acceleration_noise",
         load,
-        command=f"python -m benchmarks.acceleration_noise --data {args.data} --every {args.every} "
+        command=f"python -m benchmarks.studies.acceleration_noise --data {args.data} --every {args.every} "
         f"--radius {args.radius}",
         runtime_s=f"{time.perf_counter() - start:.0f}",
     )

@@ -1,4 +1,4 @@
-"""A brief sweep of GNS's training noise: short trainings, then rollouts against the held-out MPS frames.
+r"""A brief sweep of GNS's training noise: short trainings, then rollouts against the held-out MPS frames.
 
 For every ``--noise`` value (``train.noise_std``, l0) GNS is trained with ``train=gns_cpu`` shortened to
 ``--iterations`` (the same network unless ``--model`` overrides it), then rolled out from frame
@@ -7,7 +7,8 @@ frames, and compared with the stored MPS frames: position RMSE after 1, 10 and `
 Chamfer distance, and the step at which the rollout guard stopped it, if it did. Writes
 ``benchmarks/results/gns_noise.{md,csv}``::
 
-    python -m benchmarks.gns_noise --data data/cpu --noise 0 0.03 0.09 0.27 --iterations 400 --threads 1
+    python -m benchmarks.studies.gns_noise --data data/cpu --noise 0 0.03 0.09 0.27 \\
+        --iterations 400 --threads 1
 """
 
 from __future__ import annotations
@@ -28,7 +29,7 @@ from lagfluid.data.datasets import load_metadata
 from lagfluid.models.checkpoint import read_checkpoint
 from lagfluid.train import train
 
-RESULTS = Path(__file__).resolve().parent / "results"
+RESULTS = Path(__file__).resolve().parents[1] / "results"  # benchmarks/results, where its results are cited
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -80,7 +81,7 @@ def main(argv: list[str] | None = None) -> None:
         writer = csv.DictWriter(f, fieldnames=list(rows[0]))
         writer.writeheader()
         writer.writerows(rows)
-    prov = provenance("benchmarks.gns_noise", load)
+    prov = provenance("benchmarks.studies.gns_noise", load)
     head = list(rows[0])
     lines = [
         "# GNS training noise: a brief sweep",
