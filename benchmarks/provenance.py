@@ -7,12 +7,15 @@ from __future__ import annotations
 
 import csv
 import datetime as dt
+import io
 import os
 import platform
 import shlex
 import subprocess
 import sys
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import scipy
 import torch
@@ -71,8 +74,51 @@ def markdown(prov: dict[str, str]) -> str:
     return "\n".join(f"- {k}: {v}" for k, v in prov.items())
 
 
-def write_results(out: Path, name: str, rows: list[dict], intro: str, prov: dict[str, str]) -> str:
+def write_atomic(path: Path, text: str) -> None:
+    """Write ``text`` to ``path`` whole or not at all: a temporary file beside it, then ``os.replace``.
+
+    A run that fails mid-write (a full disk, an interrupt) leaves the previous file as it was and no
+    temporary file behind. The text is written as given (``newline=""``: the csv module's line ends too).
+    """
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        with open(tmp, "w", newline="") as f:
+            f.write(text)
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def markdown_table(
+    rows: list[dict], cell: Callable[[Any], str] = str, align: str = "---", left: tuple[str, ...] = ()
+) -> str:
+    """The rows as a markdown table, one column per key of the first row.
+
+    Args:
+        rows: one dict per row, every row with the first row's keys.
+        cell: how a value is written (e.g. floats to 4 significant digits).
+        align: the rule under every header (``---`` left, ``---:`` right) but those in ``left`` (``---``).
+        left: columns kept left-aligned whatever ``align`` says (labels beside numbers).
+    """
+    keys = list(rows[0])
+    rule = ["---" if k in left else align for k in keys]
+    lines = ["| " + " | ".join(keys) + " |", "| " + " | ".join(rule) + " |"]
+    lines += ["| " + " | ".join(cell(r[k]) for k in keys) + " |" for r in rows]
+    return "\n".join(lines)
+
+
+def results_markdown(rows: list[dict], intro: str, prov: dict[str, str], body: str | None = None) -> str:
+    """``intro``, the table of ``rows`` (or ``body`` in its place), then the provenance: a results file."""
+    body = markdown_table(rows) if body is None else body
+    return f"{intro}\n\n{body}\n\n## Provenance\n\n{markdown(prov)}\n"
+
+
+def write_results(
+    out: Path, name: str, rows: list[dict], intro: str, prov: dict[str, str], body: str | None = None
+) -> str:
     """Write ``out/<name>.csv`` (the rows) and ``out/<name>.md`` (``intro``, the rows, the provenance).
+
+    The one writer of the benchmarks' results; each file is written atomically (:func:`write_atomic`).
 
     Args:
         out: the results folder (made if missing).
@@ -80,17 +126,18 @@ def write_results(out: Path, name: str, rows: list[dict], intro: str, prov: dict
         rows: one dict per row, every row with the first row's keys (the columns, in order).
         intro: the markdown before the table: a ``#`` title and what the table says.
         prov: :func:`provenance`'s block.
+        body: the markdown between ``intro`` and the provenance when the rows alone do not say it (their
+            table formatted or transposed, notes after it, several tables); default: the rows' table.
 
     Returns:
         The markdown written.
     """
     out.mkdir(parents=True, exist_ok=True)
-    with open(out / f"{name}.csv", "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
-        writer.writeheader()
-        writer.writerows(rows)
-    header = "| " + " | ".join(rows[0]) + " |\n| " + " | ".join("---" for _ in rows[0]) + " |\n"
-    table = header + "\n".join("| " + " | ".join(str(r[k]) for k in rows[0]) + " |" for r in rows)
-    text = f"{intro}\n\n{table}\n\n## Provenance\n\n{markdown(prov)}\n"
-    (out / f"{name}.md").write_text(text)
+    buffer = io.StringIO()
+    writer = csv.DictWriter(buffer, fieldnames=list(rows[0]))
+    writer.writeheader()
+    writer.writerows(rows)
+    write_atomic(out / f"{name}.csv", buffer.getvalue())
+    text = results_markdown(rows, intro, prov, body)
+    write_atomic(out / f"{name}.md", text)
     return text
