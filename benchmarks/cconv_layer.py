@@ -23,7 +23,6 @@ Writes ``benchmarks/results/cconv_layer.{md,csv}`` with provenance.
 from __future__ import annotations
 
 import argparse
-import csv
 import os
 import statistics
 import time
@@ -34,7 +33,7 @@ import torch
 
 from baselines.cconv.conv import MAPPINGS, ContinuousConv, conv_geometry, conv_pairs
 from baselines.cconv.oracle import open3d_layer
-from benchmarks.provenance import markdown, provenance
+from benchmarks.provenance import markdown_table, provenance, write_results
 
 RESULTS = Path(__file__).resolve().parent / "results"
 SPACING = 0.05
@@ -117,35 +116,24 @@ def main(argv: list[str] | None = None) -> None:
                 rows.append(row)
 
     fields = list(dict.fromkeys(k for r in rows for k in r))
-    RESULTS.mkdir(exist_ok=True)
-    with open(RESULTS / "cconv_layer.csv", "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=fields)
-        writer.writeheader()
-        writer.writerows(rows)
+    rows = [{k: r.get(k, "") for k in fields} for r in rows]  # every column, blank where a row has none
 
     def cell(v: object) -> str:
         return f"{v:.3g}" if isinstance(v, float) else str(v)
 
     prov = provenance("benchmarks.cconv_layer", load)
-    lines = [
-        "# The continuous convolution layer: accuracy against Open3D, time against the FLOP bound",
-        "",
+    intro = (
+        "# The continuous convolution layer: accuracy against Open3D, time against the FLOP bound\n\n"
         f"{args.particles} points of a jittered lattice (spacing 0.05 m, filter radius {RADIUS} m, "
         f"{pairs.shape[1] / args.particles:.1f} neighbours each), {args.threads} threads, medians of "
         f"{args.repeats}. Pair search {1e3 * t_pairs:.1f} ms and pair geometry {1e3 * t_geometry:.1f} ms "
         "(once per step, shared by every layer over the same points); layer_ms excludes them, open3d_ms "
         "includes Open3D's own search (it has no other mode). flop_bound_ms: a dense "
         "(N, 64 C_in) @ (64 C_in, C_out) product, the multiply-adds the layer cannot avoid. Errors: ours "
-        "against Open3D's op (float32), empty where open3d-cpu is not installed.",
-        "",
-        "| " + " | ".join(fields) + " |",
-        "| " + " | ".join("---" if k == "mapping" else "---:" for k in fields) + " |",
-        *["| " + " | ".join(cell(r.get(k, "")) for k in fields) + " |" for r in rows],
-        "",
-        markdown(prov),
-    ]
-    (RESULTS / "cconv_layer.md").write_text("\n".join(lines) + "\n")
-    print("\n".join(lines))
+        "against Open3D's op (float32), empty where open3d-cpu is not installed."
+    )
+    body = markdown_table(rows, cell=cell, align="---:", left=("mapping",))
+    print(write_results(RESULTS, "cconv_layer", rows, intro, prov, body))
 
 
 if __name__ == "__main__":

@@ -52,7 +52,7 @@ from typing import Any
 
 import torch
 
-from benchmarks.provenance import markdown, provenance
+from benchmarks.provenance import provenance, write_results
 from benchmarks.tables.bench import Bench, Run
 from benchmarks.tables.config import row_file
 from benchmarks.tables.profiles import QUICK
@@ -614,10 +614,6 @@ def run_sweep(profile: ExtremesProfile, args: argparse.Namespace) -> dict[str, A
     order = [e.sim.key for e in chosen]
     order += sorted({r["simulator"] for r in rows} - set(order))
     axes = [a for a in AXES.values() if any(r["axis"] == a.key for r in rows)]
-    with open(files[0], "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
-        writer.writeheader()
-        writer.writerows(rows)
     for axis in axes:
         path = out / f"{profile.prefix}_{axis.key}.png"
         plot_axis(path, axis, profile.values[axis.key], rows, order)
@@ -634,7 +630,7 @@ def run_sweep(profile: ExtremesProfile, args: argparse.Namespace) -> dict[str, A
         prov["earlier rows"] = (
             f"{kept} rows of other axes or simulators kept from earlier runs (their date in the csv)"
         )
-    text = (
+    intro = (
         f"# Where each simulator holds ({profile.name} profile)\n\n{profile.description}. {len(rows)} runs: "
         f"{counts}. A run is *stable* when it completes within {DEGRADED_CHAMFER_L0:g} l0 mean Chamfer "
         f"distance of the MPS reference at the same setting (on the dt axis: MPS at 2 ms) and "
@@ -642,13 +638,14 @@ def run_sweep(profile: ExtremesProfile, args: argparse.Namespace) -> dict[str, A
         "*degraded* beyond either, *stopped* when the "
         "rollout guard ended it (step and reason below), *refused* when the configuration was refused "
         "before the first step, *no reference* when MPS itself stopped there (`benchmarks/extremes.py`). "
-        "Cells: verdict, mean Chamfer distance, density error over MPS's.\n\n## Summary\n\n"
-        f"{summary}\n\n## Per axis\n\n"
-        + "\n\n".join(axis_markdown(a, profile.values[a.key], rows, order) for a in axes)
-        + "\n\nEvery run's numbers and command: "
-        f"`{files[0].name}`.\n\n## Provenance\n\n{markdown(prov)}\n"
+        "Cells: verdict, mean Chamfer distance, density error over MPS's."
     )
-    files[1].write_text(text)
+    body = (
+        f"## Summary\n\n{summary}\n\n## Per axis\n\n"
+        + "\n\n".join(axis_markdown(a, profile.values[a.key], rows, order) for a in axes)
+        + f"\n\nEvery run's numbers and command: `{files[0].name}`."
+    )
+    write_results(out, profile.prefix, rows, intro, prov, body)  # files[0] and files[1]
     readme = False
     if profile.name == "full" or args.readme:
         readme = write_readme(

@@ -24,7 +24,6 @@ Writes ``benchmarks/results/fgn_one_step.{md,csv}`` with provenance.
 from __future__ import annotations
 
 import argparse
-import csv
 import os
 from pathlib import Path
 from statistics import mean, median
@@ -35,7 +34,7 @@ import torch
 from hydra import compose, initialize_config_dir
 from torch_geometric.data import Batch
 
-from benchmarks.provenance import markdown, provenance
+from benchmarks.provenance import markdown_table, provenance, results_markdown, write_results
 from lagfluid.metrics import normalized_mae
 from lagfluid.models.fgn.networks import KINDS, load_network
 from lagfluid.models.fgn.simulator import SHIPPED_WEIGHTS
@@ -139,31 +138,18 @@ def main(argv: list[str] | None = None) -> None:
     )
     header = ["network", "case", "step", "n", "nmae", "nmae_median", "rel_mae"]
     header += ["rel_l2", "rel_l2_median", "corr"]
-    table = ["| " + " | ".join(header) + " |", "|" + " --- |" * len(header)]
-    for r in rows:
-        table.append(
-            "| "
-            + " | ".join(f"{r[k]:.4g}" if isinstance(r.get(k), float) else str(r.get(k, "")) for k in header)
-            + " |"
-        )
-    text = (
+    table_rows = [{k: r.get(k, "") for k in header} for r in rows]  # a network's columns, blank elsewhere
+    body = markdown_table(table_rows, cell=lambda v: f"{v:.4g}" if isinstance(v, float) else str(v))
+    intro = (
         f"# FGN networks, one step on the `{args.split}` split of `{args.data}`\n\n"
         "nmae: normalised MAE (eq. 32), mean over samples (median beside it); rel_mae: sum ||error|| / "
         "sum ||target|| per sample; rel_l2: "
-        "||p - p_PPE|| / ||p_PPE|| per sample; corr: Pearson correlation with the PPE pressure.\n\n"
-        + "\n".join(table)
-        + "\n\n"
-        + markdown(prov)
-        + "\n"
+        "||p - p_PPE|| / ||p_PPE|| per sample; corr: Pearson correlation with the PPE pressure."
     )
-    print(text)
-    if not args.no_save:
-        RESULTS.mkdir(exist_ok=True)
-        (RESULTS / "fgn_one_step.md").write_text(text)
-        with (RESULTS / "fgn_one_step.csv").open("w", newline="") as f:
-            w = csv.DictWriter(f, fieldnames=header, extrasaction="ignore")
-            w.writeheader()
-            w.writerows(rows)
+    if args.no_save:
+        print(results_markdown(table_rows, intro, prov, body))
+    else:
+        print(write_results(RESULTS, "fgn_one_step", table_rows, intro, prov, body))
 
 
 if __name__ == "__main__":

@@ -38,7 +38,7 @@ import torch
 from hydra import compose, initialize_config_dir
 
 from benchmarks.fgn_one_step import HELD_OUT, one_step_rows
-from benchmarks.provenance import git_commit, markdown, provenance
+from benchmarks.provenance import git_commit, provenance, write_results
 from lagfluid.evaluate import evaluate
 from lagfluid.run import CONF_DIR
 
@@ -148,10 +148,6 @@ def _cell(value: Any) -> str:
 
 def write_tables(rows: list[dict[str, Any]], out: Path, data: str, prov: dict[str, str]) -> str:
     """Write ``fgn_recipe.csv`` (every column) and ``fgn_recipe.md``; returns the markdown."""
-    with open(out / "fgn_recipe.csv", "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=list(COLUMNS))
-        writer.writeheader()
-        writer.writerows(rows)
     shown = (
         ("row", "label"),
         ("adv. nMAE held-out", "adv_nmae_held_out"),
@@ -176,7 +172,7 @@ def write_tables(rows: list[dict[str, Any]], out: Path, data: str, prov: dict[st
         + f"; measured {r['date']}, commit {r['git_commit']}"
         for r in rows
     )
-    text = (
+    intro = (
         "# FGN's training recipe, one lever at a time\n\n"
         f"One step on the test split of `{data}` (`benchmarks/fgn_one_step.py`: advection normalised MAE "
         "(eq. 32) at held-out g and nu and at water, collision relative MAE, pressure relative L2 error "
@@ -184,14 +180,14 @@ def write_tables(rows: list[dict[str, Any]], out: Path, data: str, prov: dict[st
         "authors' 4,000-particle dam for 1 s against MPS (`task=evaluate`, as Table 3: density error and "
         "divergence over the frames as multiples of MPS's own on the same frames, Chamfer distance to MPS, "
         "the pressure's relative PPE residual of eq. 31). Goal (issue 16): density error <= 1.1x MPS, "
-        "divergence <= 2x, Chamfer <= 18 mm.\n\n"
-        + "\n".join(lines)
-        + f"\n\n## Where each row's weights came from\n\n{origin}\n\n## Provenance of the last run\n\n"
-        + markdown(prov)
-        + "\n"
+        "divergence <= 2x, Chamfer <= 18 mm."
     )
-    (out / "fgn_recipe.md").write_text(text)
-    return text
+    body = "\n".join(lines) + f"\n\n## Where each row's weights came from\n\n{origin}\n\n"
+    body += (
+        "Each row keeps its own date, commit and command in the csv; the provenance below is the last run's."
+    )
+    csv_rows = [{k: r.get(k, "") for k in COLUMNS} for r in rows]  # every column, blank where a row has none
+    return write_results(out, "fgn_recipe", csv_rows, intro, prov, body)
 
 
 def main(argv: list[str] | None = None) -> None:

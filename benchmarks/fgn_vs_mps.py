@@ -21,7 +21,6 @@ rollouts go to ``runs/bench/fgn_vs_mps/<model>-<scene>`` (not committed).
 from __future__ import annotations
 
 import argparse
-import csv
 import os
 from pathlib import Path
 
@@ -29,7 +28,7 @@ import numpy as np
 import torch
 from hydra import compose, initialize_config_dir
 
-from benchmarks.provenance import markdown, provenance
+from benchmarks.provenance import provenance, results_markdown, write_results
 from lagfluid.data.store import read_trajectory
 from lagfluid.memory import keep_freed_memory
 from lagfluid.metrics import chamfer_distance
@@ -128,29 +127,18 @@ def main(argv: list[str] | None = None) -> None:
         steps=str(args.steps),
         particles=str(runs["mps"][0]["particles"]),
     )
-    header = list(rows[0])
-    table = ["| " + " | ".join(header) + " |", "|" + " --- |" * len(header)]
-    table += ["| " + " | ".join(str(r[k]) for k in header) + " |" for r in rows]
-    text = (
+    intro = (
         f"# FGN vs MPS on `{args.scene}` ({args.steps} steps)\n\n"
         "Same scene, steps and threads for every model, run one after another in one process. Time per "
         "step: median (`ms_per_step`, a typical step) and mean (`ms_per_step_mean`, the whole run with its "
         "neighbour-list rebuilds); each speed-up is MPS's time over the model's. Chamfer: "
         "paper eq. 29 from the model's fluid to MPS's at the same step, mean over stored frames, in l0. "
-        "Density error and divergence: `lagfluid.metrics` (README, Metrics).\n\n"
-        + "\n".join(table)
-        + "\n\n"
-        + markdown(prov)
-        + "\n"
+        "Density error and divergence: `lagfluid.metrics` (README, Metrics)."
     )
-    print(text)
-    if not args.no_save:
-        RESULTS.mkdir(exist_ok=True)
-        (RESULTS / f"fgn_vs_mps_{args.scene}.md").write_text(text)
-        with (RESULTS / f"fgn_vs_mps_{args.scene}.csv").open("w", newline="") as f:
-            w = csv.DictWriter(f, fieldnames=header)
-            w.writeheader()
-            w.writerows(rows)
+    if args.no_save:
+        print(results_markdown(rows, intro, prov))
+    else:
+        print(write_results(RESULTS, f"fgn_vs_mps_{args.scene}", rows, intro, prov))
 
 
 if __name__ == "__main__":

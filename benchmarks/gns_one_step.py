@@ -17,7 +17,6 @@ Writes ``benchmarks/results/gns_one_step.{md,csv}`` with provenance.
 from __future__ import annotations
 
 import argparse
-import csv
 import os
 from pathlib import Path
 
@@ -26,7 +25,7 @@ import numpy as np
 import torch
 from torch_geometric.data import Batch
 
-from benchmarks.provenance import markdown, provenance
+from benchmarks.provenance import markdown_table, provenance, write_results
 from benchmarks.tables.config import compose_config
 from lagfluid.config import (
     at_simulator_time_step,
@@ -126,28 +125,17 @@ def main(argv: list[str] | None = None) -> None:
     for frame in args.frames:
         errs = rollout_errors(overrides, scene, frame, args.steps)
         row.update({f"from_{frame}_{k}": v for k, v in errs.items()})
-    RESULTS.mkdir(exist_ok=True)
-    with open(RESULTS / "gns_one_step.csv", "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=list(row))
-        writer.writeheader()
-        writer.writerow(row)
     prov = provenance("benchmarks.gns_one_step", load)
-    lines = [
-        "# GNS accuracy on the held-out test scene",
-        "",
+    intro = (
+        "# GNS accuracy on the held-out test scene\n\n"
         f"Test scene `{scene}`. One step: every test window, no noise; errors over the fluid particles. "
         f"Rollouts of {args.steps} frames (8 ms) from frames {args.frames} against the stored MPS frames "
         "(history from the file): position RMSE after k frames and mean Chamfer distance (mm), the frame at "
-        "which the rollout guard stopped it (nan: ran to the end).",
-        "",
-        "| quantity | value |",
-        "| --- | ---: |",
-        *[f"| {k} | {v:.4g} |" if isinstance(v, float) else f"| {k} | {v} |" for k, v in row.items()],
-        "",
-        markdown(prov),
-    ]
-    (RESULTS / "gns_one_step.md").write_text("\n".join(lines) + "\n")
-    print("\n".join(lines))
+        "which the rollout guard stopped it (nan: ran to the end)."
+    )
+    quantities = [{"quantity": k, "value": f"{v:.4g}" if isinstance(v, float) else v} for k, v in row.items()]
+    body = markdown_table(quantities, align="---:", left=("quantity",))  # one row: shown transposed
+    print(write_results(RESULTS, "gns_one_step", [row], intro, prov, body))
 
 
 if __name__ == "__main__":

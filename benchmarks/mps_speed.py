@@ -14,7 +14,6 @@ medians from one run only.
 from __future__ import annotations
 
 import argparse
-import csv
 import os
 import time
 from pathlib import Path
@@ -23,7 +22,7 @@ from statistics import median
 import torch
 from hydra import compose, initialize_config_dir
 
-from benchmarks.provenance import markdown, provenance
+from benchmarks.provenance import markdown, markdown_table, provenance, write_results
 from lagfluid.config import build_initial_state, build_simulator
 from lagfluid.memory import keep_freed_memory
 from lagfluid.rollout import rollout
@@ -77,27 +76,17 @@ def main(argv: list[str] | None = None) -> None:
         torch.set_num_threads(args.threads)
     load_before = os.getloadavg()[0]
     rows = [measure(s, args.warmup, args.steps, args.device, args.override) for s in args.scenes]
-    header = list(rows[0])
-    lines = [
-        "| " + " | ".join(header) + " |",
-        "| " + " | ".join("---" for _ in header) + " |",
-        *("| " + " | ".join(str(r[k]) for k in header) + " |" for r in rows),
-    ]
-    prov = markdown(provenance("benchmarks.mps_speed", load_before, args.device))
-    print("\n".join(lines))
-    print(prov)
+    prov = provenance("benchmarks.mps_speed", load_before, args.device)
+    print(markdown_table(rows))
+    print(markdown(prov))
     if not args.no_save:
-        RESULTS.mkdir(parents=True, exist_ok=True)
-        (RESULTS / "mps_speed.md").write_text(
+        intro = (
             "# MPS time per step by stage\n\nMedian over the timed steps (after warm-up). "
             "Stages: neighbour search and filtering, advection (viscosity + gravity), collision, "
             "PPE assembly (number density, divergence, matrix), PPE solve (Jacobi-CG), "
-            "correction (pressure gradient).\n\n" + "\n".join(lines) + "\n\n" + prov + "\n"
+            "correction (pressure gradient)."
         )
-        with open(RESULTS / "mps_speed.csv", "w", newline="") as f:
-            writer = csv.DictWriter(f, fieldnames=header)
-            writer.writeheader()
-            writer.writerows(rows)
+        write_results(RESULTS, "mps_speed", rows, intro, prov)
 
 
 if __name__ == "__main__":

@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from benchmarks.gns_one_step import rollout_errors
-from benchmarks.provenance import markdown, provenance
+from benchmarks.provenance import markdown_table, provenance, write_results
 from benchmarks.tables.config import compose_config
 from lagfluid.data.datasets import load_metadata
 from lagfluid.models.checkpoint import read_checkpoint
@@ -76,33 +76,18 @@ def main(argv: list[str] | None = None) -> None:
         print(row, flush=True)
         rows.append(row)
 
-    RESULTS.mkdir(exist_ok=True)
-    with open(RESULTS / "gns_noise.csv", "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
-        writer.writeheader()
-        writer.writerows(rows)
     prov = provenance("benchmarks.studies.gns_noise", load)
-    head = list(rows[0])
-    lines = [
-        "# GNS training noise: a brief sweep",
-        "",
+    intro = (
+        "# GNS training noise: a brief sweep\n\n"
         f"`train=gns_cpu` shortened to {args.iterations} iterations per value (model overrides: "
         f"{args.model or 'none'}), then rollouts of {args.steps} frames (8 ms) from frame {args.frame} of "
         "the valid and test scenes against the stored MPS frames. RMSE: fluid position error (mm) after k "
         "frames; Chamfer: mean over the frames (mm); stopped: the frame at which the rollout guard stopped "
         "it (nan: ran to the end). valid_rms_acc: the noise-free one-step RMS acceleration error on the "
-        "valid split (m/s^2).",
-        "",
-        "| " + " | ".join(head) + " |",
-        "| " + " | ".join("---:" for _ in head) + " |",
-        *[
-            "| " + " | ".join(f"{r[k]:.4g}" if isinstance(r[k], float) else str(r[k]) for k in head) + " |"
-            for r in rows
-        ],
-        "",
-        markdown(prov),
-    ]
-    (RESULTS / "gns_noise.md").write_text("\n".join(lines) + "\n")
+        "valid split (m/s^2)."
+    )
+    body = markdown_table(rows, cell=lambda v: f"{v:.4g}" if isinstance(v, float) else str(v), align="---:")
+    write_results(RESULTS, "gns_noise", rows, intro, prov, body)
     print(f"wrote {RESULTS / 'gns_noise.md'}")
 
 
