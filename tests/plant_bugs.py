@@ -823,6 +823,21 @@ PLANTS = [
         "bias=True",
         "tests/test_zoo.py::test_the_shared_layers_keep_their_state_dict_keys",
     ),
+    # issue 36, benchmarks vs studies: a moved study's old path, a non-atomic results writer
+    (
+        "README runs a moved study by its old path",
+        "README.md",
+        "`python -m benchmarks.studies.resting_variants` measures",
+        "`python -m benchmarks.resting_variants` measures",
+        "tests/test_benchmarks_layout.py::test_every_benchmark_the_documents_run_exists",
+    ),
+    (
+        "write_atomic writes in place, not beside (a failure mid-write destroys the old results)",
+        "benchmarks/provenance.py",
+        'tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")',
+        "tmp = path",
+        "tests/test_provenance.py::test_a_failure_mid_write_leaves_the_old_results_intact",
+    ),
 ]
 
 

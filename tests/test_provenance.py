@@ -43,6 +43,7 @@ def test_a_body_replaces_the_default_table():
 def test_a_failure_mid_write_leaves_the_old_results_intact(tmp_path, monkeypatch):
     write_results(tmp_path, "example", ROWS, "# Old", PROV)
     old = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+    assert sorted(old) == ["example.csv", "example.md"] and old["example.csv"].startswith(b"case,ms")
 
     def full_disk(self, text):
         raise OSError(28, "No space left on device")
