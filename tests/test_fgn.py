@@ -845,7 +845,8 @@ def test_the_learned_advection_stage_sees_what_training_sees():
     """Inference (learned stage in the scheme) and training (trainable on a batch) build the same inputs."""
     from lagfluid.models.fgn.stages import LearnedAdvection
     from lagfluid.models.mps_simulator import build_mps
-    from lagfluid.physics.stages import StageTimer, StepContext
+    from lagfluid.physics.step_context import StepContext
+    from lagfluid.physics.timing import StageTimer
     from lagfluid.scenes import build_scene
 
     net = _nets()["advection"]
@@ -895,7 +896,7 @@ def test_graphs_derived_across_a_rollout_equal_fresh_filters(monkeypatch, model)
     x**) equals a fresh exact filter at its positions; and the carry saves filters: FGN filters the Verlet
     list once a step (at x**), MPS twice (x^n at the Laplacian's radius cannot be derived)."""
     from lagfluid.neighbor_list import VerletNeighborList
-    from lagfluid.physics.stages import StepContext
+    from lagfluid.physics.step_context import StepContext
 
     cfg = _compose(f"model={model}", "scene=dam_small", "scene.params.gravity=[0,0,-60]")  # fast: big moves
     sim, state = build_simulator(cfg), build_initial_state(cfg)

@@ -49,7 +49,7 @@ from lagfluid.models.fgn.networks import build_network, owned_stages
 from lagfluid.models.fgn.ppe_term import WithPPESystem, ppe_residual_rows
 from lagfluid.neighbors import edge_vectors, radius_graph
 from lagfluid.physics import operators as ops
-from lagfluid.physics.stages import SolverSettings, lattice_constants
+from lagfluid.physics.settings import SolverSettings, lattice_constants
 from lagfluid.state import ParticleType
 
 __all__ = [
