@@ -25,9 +25,9 @@ from omegaconf import OmegaConf
 
 from lagfluid.errors import ConfigError
 from lagfluid.models.checkpoint import CheckpointError, MissingWeightsError
+from lagfluid.models.fgn.learned_stages import LearnedAdvection, LearnedCollision, LearnedPressure
 from lagfluid.models.fgn.networks import KINDS, load_network, owned_stages
 from lagfluid.models.fgn.original import load_original_network
-from lagfluid.models.fgn.stages import LearnedAdvection, LearnedCollision, LearnedPressure
 from lagfluid.models.layers import parameter_count
 from lagfluid.models.training_range import RangeWarner, range_from_checkpoint_meta
 from lagfluid.physics.mps import CollisionRule, ExactAdvection, ExactPressure
