@@ -39,7 +39,7 @@ from lagfluid.metrics import normalized_mae
 from lagfluid.models.fgn.networks import KINDS, load_network
 from lagfluid.models.fgn.simulator import SHIPPED_WEIGHTS
 from lagfluid.models.fgn.trainables import ResampledMaterials, build_trainables
-from lagfluid.physics.stages import SolverSettings
+from lagfluid.physics.settings import SolverSettings
 from lagfluid.run import CONF_DIR
 
 RESULTS = Path(__file__).resolve().parent / "results"

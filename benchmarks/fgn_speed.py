@@ -4,7 +4,7 @@
 
 Per scene: ``--warmup`` steps (lazy set-up, the first neighbour list), then ``--steps`` steps under
 ``torch.profiler`` (CPU, shapes and FLOPs recorded), every stage of the step (the simulator's
-:class:`~lagfluid.physics.stages.StageTimer` names: neighbours, advection, collision, pressure net,
+:class:`~lagfluid.physics.timing.StageTimer` names: neighbours, advection, collision, pressure net,
 correction) marked as a profiler range. Each torch op called in a stage (with what it calls) counts for
 that stage and its kind: ``linear`` (dense matmuls), ``layer_norm``, ``sparse`` (CSR products),
 ``activation``, ``gather/scatter`` (index_select, scatter, index_add), ``elementwise`` and ``other``; a
@@ -45,7 +45,7 @@ from benchmarks.provenance import provenance, write_results
 from lagfluid.config import at_simulator_time_step, build_initial_state, build_simulator
 from lagfluid.memory import keep_freed_memory
 from lagfluid.models.simulator import Simulator
-from lagfluid.physics.stages import StageTimer
+from lagfluid.physics.timing import StageTimer
 from lagfluid.rollout import rollout
 from lagfluid.run import CONF_DIR
 from lagfluid.state import ParticleState

@@ -5,7 +5,7 @@ One integrator, outside the models (``docs/architecture.md#conventions``, conven
 the rollout applies, so a network trained on one-step targets and rolled out by the same update agree by
 construction.
 
-The split-step scheme (:mod:`lagfluid.physics.stages`, paper A.1 and the authors' position updates)::
+The split-step scheme (:mod:`lagfluid.physics.scheme`, paper A.1 and the authors' position updates)::
 
     advect    v* = v^n + a dt,          x* = x^n + v* dt          advect / advection_target  (drift: a = 0)
     collide   v** (given),              x** = x* + (v** - v*) dt  collide / collision_target

@@ -44,7 +44,7 @@ from lagfluid.locks import hold_outputs
 from lagfluid.metrics import field_metrics, summarize
 from lagfluid.models.simulator import Simulator
 from lagfluid.outputs import begin, part_path, publish, write_json
-from lagfluid.physics.stages import SolverSettings, lattice_constants
+from lagfluid.physics.settings import SolverSettings, lattice_constants
 from lagfluid.rollout import Guard, rollout
 from lagfluid.simulate_resume import RolloutCheckpoint, run_settings
 from lagfluid.state import ParticleState, ParticleType

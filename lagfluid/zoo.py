@@ -106,7 +106,9 @@ from lagfluid.models.training_range import RangeWarner
 from lagfluid.neighbors import edge_vectors, radius_graph
 from lagfluid.physics.mps import CollisionRule, ExactPressure
 from lagfluid.physics.operators import kernel
-from lagfluid.physics.stages import SolverSettings, SplitStepSimulator, StageTimer
+from lagfluid.physics.scheme import SplitStepSimulator
+from lagfluid.physics.settings import SolverSettings
+from lagfluid.physics.timing import StageTimer
 from lagfluid.rollout import Guard, StepHook, rollout
 from lagfluid.scenes import scene_params
 from lagfluid.state import ParticleState, ParticleType, SceneParams

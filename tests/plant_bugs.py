@@ -437,14 +437,14 @@ PLANTS = [
     ),
     (
         "exact_after: the collision moves velocities but not positions",
-        "lagfluid/physics/stages.py",
+        "lagfluid/physics/scheme.py",
         "            pos[:nf] = integrate.collide(pos[:nf], v_star, v_new, dt)",
         "            pass  # planted",
         "tests/test_exact_after.py::test_exact_collision_after_a_step_is_the_collision_rule_applied_directly",
     ),
     (
         "exact_after: the relaxation factor is ignored",
-        "lagfluid/physics/stages.py",
+        "lagfluid/physics/scheme.py",
         "                acc_p = relaxation * acc_p",
         "                pass  # planted",
         "tests/test_exact_after.py::test_mps_pressure_after_a_step_lowers_a_compressed_blocks_density_error",

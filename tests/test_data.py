@@ -33,7 +33,7 @@ from lagfluid.errors import LagfluidError
 from lagfluid.generate import generate
 from lagfluid.neighbors import radius_graph
 from lagfluid.physics import operators as ops
-from lagfluid.physics.stages import SolverSettings, lattice_constants
+from lagfluid.physics.settings import SolverSettings, lattice_constants
 from lagfluid.run import CONF_DIR, check_command_line
 from lagfluid.state import ParticleType
 
@@ -315,7 +315,7 @@ def test_resume_regenerates_only_what_is_missing(dataset, tmp_path):
 
 def test_solver_keys_added_later_keep_old_fingerprints_at_their_neutral_value():
     from lagfluid.generate import DataSpec
-    from lagfluid.physics.stages import NEUTRAL_SOLVER_KEYS
+    from lagfluid.physics.settings import NEUTRAL_SOLVER_KEYS
 
     spec = DataSpec.from_config(_compose(*TINY))
     before_the_keys = {k: v for k, v in spec.solver.items() if k not in NEUTRAL_SOLVER_KEYS}

@@ -20,7 +20,10 @@ from lagfluid.models.exact_after import ExactAfter, ExactAfterOptions
 from lagfluid.neighbors import radius_graph
 from lagfluid.physics import operators as ops
 from lagfluid.physics.mps import CollisionRule, ExactPressure
-from lagfluid.physics.stages import SolverSettings, SplitStepSimulator, StageTimer, StepContext
+from lagfluid.physics.scheme import SplitStepSimulator
+from lagfluid.physics.settings import SolverSettings
+from lagfluid.physics.step_context import StepContext
+from lagfluid.physics.timing import StageTimer
 from lagfluid.run import CONF_DIR, check_command_line
 from lagfluid.scenes import build_scene
 from lagfluid.simulate import simulate

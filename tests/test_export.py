@@ -203,7 +203,7 @@ def test_the_number_density_of_each_frame_is_that_frames_own(tmp_path):
     """Two particles 10 l0 apart (n = 0), then 1 l0 apart (each sees w = re/l0 - 1 = 1.1): n/n0 by hand."""
     from lagfluid.data.store import TrajectoryWriter
     from lagfluid.export.vtk import write_paraview
-    from lagfluid.physics.stages import SolverSettings, lattice_constants
+    from lagfluid.physics.settings import SolverSettings, lattice_constants
 
     l0 = 0.05
     n0 = lattice_constants(l0, SolverSettings(), 3).n0  # the ideal lattice's, at re = 2.1 l0

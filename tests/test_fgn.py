@@ -24,10 +24,10 @@ from lagfluid.errors import ConfigError, LagfluidError
 from lagfluid.generate import generate
 from lagfluid.models.checkpoint import CheckpointError, network_payload, read_checkpoint, save_checkpoint
 from lagfluid.models.fgn import networks as fgn_mod
+from lagfluid.models.fgn.learned_stages import compact_nodes
 from lagfluid.models.fgn.networks import build_network, load_network
 from lagfluid.models.fgn.original import load_original_network
 from lagfluid.models.fgn.simulator import AUTHORS_WEIGHTS
-from lagfluid.models.fgn.stages import compact_nodes
 from lagfluid.models.fgn.trainables import build_trainables
 from lagfluid.run import CONF_DIR
 from lagfluid.simulate import simulate
@@ -282,7 +282,7 @@ def test_compact_nodes_keeps_the_fluid_rows_and_renumbers_sources():
 
 def test_induced_subgraph_compiled_and_torch_paths_agree(monkeypatch):
     from lagfluid import pair_kernels
-    from lagfluid.models.fgn.stages import induced_subgraph
+    from lagfluid.models.fgn.learned_stages import induced_subgraph
 
     gen = torch.Generator().manual_seed(4)
     edge_index = torch.randint(0, 50, (2, 400), generator=gen)
@@ -843,9 +843,10 @@ def test_stage_losses_and_an_unknown_loss_is_named():
 
 def test_the_learned_advection_stage_sees_what_training_sees():
     """Inference (learned stage in the scheme) and training (trainable on a batch) build the same inputs."""
-    from lagfluid.models.fgn.stages import LearnedAdvection
+    from lagfluid.models.fgn.learned_stages import LearnedAdvection
     from lagfluid.models.mps_simulator import build_mps
-    from lagfluid.physics.stages import StageTimer, StepContext
+    from lagfluid.physics.step_context import StepContext
+    from lagfluid.physics.timing import StageTimer
     from lagfluid.scenes import build_scene
 
     net = _nets()["advection"]
@@ -895,7 +896,7 @@ def test_graphs_derived_across_a_rollout_equal_fresh_filters(monkeypatch, model)
     x**) equals a fresh exact filter at its positions; and the carry saves filters: FGN filters the Verlet
     list once a step (at x**), MPS twice (x^n at the Laplacian's radius cannot be derived)."""
     from lagfluid.neighbor_list import VerletNeighborList
-    from lagfluid.physics.stages import StepContext
+    from lagfluid.physics.step_context import StepContext
 
     cfg = _compose(f"model={model}", "scene=dam_small", "scene.params.gravity=[0,0,-60]")  # fast: big moves
     sim, state = build_simulator(cfg), build_initial_state(cfg)

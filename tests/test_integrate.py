@@ -5,7 +5,9 @@ import torch
 
 from lagfluid import integrate
 from lagfluid.physics.mps import CollisionRule, ExactAdvection, ExactPressure
-from lagfluid.physics.stages import SolverSettings, SplitStepFields, SplitStepSimulator
+from lagfluid.physics.scheme import SplitStepSimulator
+from lagfluid.physics.settings import SolverSettings
+from lagfluid.physics.step_context import SplitStepFields
 from lagfluid.scenes import build_scene
 
 EPS32 = torch.finfo(torch.float32).eps
@@ -93,7 +95,9 @@ def test_the_split_step_scheme_is_the_integrator_and_its_fields_are_declared():
 
 def test_a_stage_recording_an_undeclared_field_is_an_error():
     from lagfluid.errors import ConfigError
-    from lagfluid.physics.stages import StageTimer, StepContext, lattice_constants
+    from lagfluid.physics.settings import lattice_constants
+    from lagfluid.physics.step_context import StepContext
+    from lagfluid.physics.timing import StageTimer
 
     state = build_scene("dam", fluid_size=[3, 3, 3], tank_size=[8, 6])
     settings = SolverSettings()

@@ -130,12 +130,12 @@ def _compose(*overrides):
 
 def _never_searched(monkeypatch):
     """Make the simulator's first neighbour search fail loudly: the refusal must come before it."""
-    from lagfluid.physics import stages
+    from lagfluid.physics import scheme
 
     def searched(*args, **kwargs):
         raise AssertionError("the neighbour list was made before the memory check")
 
-    monkeypatch.setattr(stages, "neighbor_list", searched)
+    monkeypatch.setattr(scheme, "neighbor_list", searched)
 
 
 @pytest.mark.parametrize(

@@ -21,7 +21,7 @@ from lagfluid.metrics import (
     summarize,
 )
 from lagfluid.physics.reference import exact_context, exact_ppe, mps_constants, ppe_relative_residual
-from lagfluid.physics.stages import SolverSettings
+from lagfluid.physics.settings import SolverSettings
 from lagfluid.run import CONF_DIR
 from lagfluid.state import ParticleState
 
@@ -67,7 +67,7 @@ def test_kinetic_energy_of_runs_at_two_spacings_uses_each_runs_particle_mass(tmp
     """The same block moving at 1 m/s as 8 particles of l0 = 0.05 and as 1 of l0 = 0.1: the same energy."""
     from lagfluid.data.store import TrajectoryWriter
     from lagfluid.evaluate.compare import compare
-    from lagfluid.physics.stages import SolverSettings
+    from lagfluid.physics.settings import SolverSettings
 
     def write(path, l0, n):
         k = np.arange(n) * l0
@@ -262,6 +262,14 @@ def test_metrics_know_no_simulator():
     code = "import sys, lagfluid.metrics; print(sorted(m for m in sys.modules if m.startswith('lagfluid')))"
     root = Path(__file__).resolve().parents[1]  # this checkout's lagfluid, not an installed one
     run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=root)
-    for module in ("physics.stages", "physics.mps", "physics.ppe", "physics.reference", "models"):
+    for module in (
+        "physics.scheme",
+        "physics.step_context",
+        "physics.settings",
+        "physics.mps",
+        "physics.ppe",
+        "physics.reference",
+        "models",
+    ):
         assert f"'lagfluid.{module}" not in run.stdout, run.stdout
     assert "'lagfluid.physics.operators'" in run.stdout  # (the check sees what was imported)

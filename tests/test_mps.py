@@ -10,7 +10,7 @@ from lagfluid.errors import ConfigError, RolloutError
 from lagfluid.models.mps_simulator import build_mps
 from lagfluid.neighbor_list import VerletNeighborList
 from lagfluid.neighbors import radius_graph
-from lagfluid.physics.stages import SolverSettings, lattice_constants
+from lagfluid.physics.settings import SolverSettings, lattice_constants
 from lagfluid.rollout import Guard, rollout
 from lagfluid.scenes import build_scene
 from lagfluid.state import ParticleState, ParticleType, SceneParams
@@ -252,7 +252,8 @@ def test_recorded_intermediates_invert_the_update_exactly():
 
 @pytest.mark.parametrize("fluid_only", [False, True])
 def test_step_context_graphs_equal_brute_force_at_moved_positions(fluid_only):
-    from lagfluid.physics.stages import StageTimer, StepContext
+    from lagfluid.physics.step_context import StepContext
+    from lagfluid.physics.timing import StageTimer
 
     state = build_scene("dam", fluid_size=[6, 6, 8], tank_size=[15, 8])
     sim = mps()
@@ -279,7 +280,8 @@ def test_step_context_graphs_equal_brute_force_at_moved_positions(fluid_only):
 
 def test_graph_cache_is_not_fooled_by_a_reused_buffer():
     # A temporary freed and replaced by another tensor at the same address must not hit the cache.
-    from lagfluid.physics.stages import StageTimer, StepContext
+    from lagfluid.physics.step_context import StepContext
+    from lagfluid.physics.timing import StageTimer
 
     state = build_scene("dam", fluid_size=[6, 6, 8], tank_size=[15, 8])
     sim = mps()
@@ -403,7 +405,8 @@ def test_moved_boundary_invalidates_the_cached_wall_rows():
 
 
 def test_fluid_target_graph_sliced_from_the_cached_full_graph():
-    from lagfluid.physics.stages import StageTimer, StepContext
+    from lagfluid.physics.step_context import StepContext
+    from lagfluid.physics.timing import StageTimer
 
     state = build_scene("dam", fluid_size=[6, 6, 8], tank_size=[15, 8])
     sim = mps()

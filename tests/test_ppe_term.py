@@ -10,7 +10,7 @@ from lagfluid.errors import ConfigError, LagfluidError
 from lagfluid.generate import generate
 from lagfluid.models.checkpoint import read_checkpoint
 from lagfluid.models.fgn.ppe_term import LABEL_TOLERANCE, WithPPESystem, ppe_residual_rows
-from lagfluid.models.fgn.trainables import PressureStage
+from lagfluid.models.fgn.trainables import PressureTrainable
 from lagfluid.run import CONF_DIR
 from lagfluid.train import train
 
@@ -91,7 +91,7 @@ def test_training_with_the_ppe_term_records_its_weight_and_refuses_a_bad_one(tin
     meta = read_checkpoint(tmp_path / "ppe" / "pressure.pt")["meta"]
     assert '"ppe_weight": 0.1' in meta["identity"]
     with pytest.raises(ConfigError, match=r"train.ppe_weight must be a finite number >= 0, got -1.0"):
-        PressureStage("pressure", {}, ppe_weight=-1.0)
+        PressureTrainable("pressure", {}, ppe_weight=-1.0)
 
 
 def test_a_sample_differing_only_at_the_surface_threshold_gets_no_ppe_term(tiny_data, monkeypatch):
@@ -111,5 +111,8 @@ def test_a_sample_differing_only_at_the_surface_threshold_gets_no_ppe_term(tiny_
 
 
 def test_without_the_ppe_term_a_pressure_run_keeps_its_earlier_fingerprint():
-    assert PressureStage("pressure", {}).identity() == {"materials": None}  # resumable across the change
-    assert PressureStage("pressure", {}, ppe_weight=0.5).identity() == {"materials": None, "ppe_weight": 0.5}
+    assert PressureTrainable("pressure", {}).identity() == {"materials": None}  # resumable across the change
+    assert PressureTrainable("pressure", {}, ppe_weight=0.5).identity() == {
+        "materials": None,
+        "ppe_weight": 0.5,
+    }

@@ -11,7 +11,7 @@ from lagfluid.config import build_simulator
 from lagfluid.errors import ConfigError
 from lagfluid.models.mps_simulator import build_mps
 from lagfluid.models.simulator import check_simulator
-from lagfluid.physics.stages import SplitStepFields
+from lagfluid.physics.step_context import SplitStepFields
 from lagfluid.rollout import rollout
 from lagfluid.run import CONF_DIR
 from lagfluid.scenes import build_scene

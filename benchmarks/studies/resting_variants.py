@@ -31,7 +31,7 @@ from omegaconf import OmegaConf
 
 from benchmarks.validate_mps.common import make_sim, metrics_of, profile_config, solver_config
 from lagfluid.errors import LagfluidError
-from lagfluid.physics.stages import SolverSettings
+from lagfluid.physics.settings import SolverSettings
 from lagfluid.rollout import rollout
 from lagfluid.scenes import build_scene
 from lagfluid.state import SceneParams

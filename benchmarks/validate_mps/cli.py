@@ -24,7 +24,7 @@ from benchmarks.validate_mps.free_fall import check_free_fall
 from benchmarks.validate_mps.hydrostatic import check_hydrostatic
 from benchmarks.validate_mps.mass import check_mass
 from benchmarks.validate_mps.report import report_extra, run_provenance, write_report
-from lagfluid.physics.stages import SolverSettings
+from lagfluid.physics.settings import SolverSettings
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:

@@ -16,7 +16,7 @@ from omegaconf import DictConfig, OmegaConf
 from lagfluid.errors import RolloutError
 from lagfluid.metrics import field_metrics
 from lagfluid.models.mps_simulator import build_mps
-from lagfluid.physics.stages import SolverSettings, lattice_constants
+from lagfluid.physics.settings import SolverSettings, lattice_constants
 from lagfluid.rollout import Guard, rollout
 from lagfluid.run import CONF_DIR
 from lagfluid.state import ParticleState, ParticleType

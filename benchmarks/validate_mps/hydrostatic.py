@@ -17,7 +17,7 @@ from benchmarks.validate_mps.common import (
     monitored_rollout,
     status,
 )
-from lagfluid.physics.stages import SolverSettings
+from lagfluid.physics.settings import SolverSettings
 from lagfluid.scenes import build_scene
 from lagfluid.state import ParticleState, ParticleType
 

@@ -43,7 +43,7 @@ particles, ``T`` trajectory frames, ``S = ceil(steps / k)`` samples for ``k = sa
         attrs: format_version (samples layout), count, dt, complete; collision/: restitution,
                re_collision, num_systems, steps
 
-The samples satisfy the update of :mod:`lagfluid.physics.stages` exactly (same float32 operations):
+The samples satisfy the update of :mod:`lagfluid.physics.scheme` exactly (same float32 operations):
 ``v* = v^n + a dt``, ``x* = x^n + v* dt``, ``x** = x* + (v** - v*) dt``. So the in-scene collision stage's
 samples ``(x*, v*) -> v**`` are there too, without storing them twice.
 

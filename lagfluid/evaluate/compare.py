@@ -22,7 +22,7 @@ from lagfluid.metrics import (
     position_mse,
     summarize,
 )
-from lagfluid.physics.stages import SolverSettings, lattice_constants
+from lagfluid.physics.settings import SolverSettings, lattice_constants
 from lagfluid.state import ParticleType
 
 

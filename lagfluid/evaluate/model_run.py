@@ -2,7 +2,7 @@
 
 A one-step error compares what a stage of the model returned with the exact stage *at the same input*
 (paper Table 4): the rollout's ``on_step`` hook hands over the state before the step and the step's declared
-intermediates (:class:`~lagfluid.physics.stages.SplitStepFields`); a simulator without such stages (an
+intermediates (:class:`~lagfluid.physics.step_context.SplitStepFields`); a simulator without such stages (an
 end-to-end model) has none and its one-step errors are NaN.
 """
 
@@ -24,7 +24,8 @@ from lagfluid.models.simulator import Simulator
 from lagfluid.neighbor_list import VerletNeighborList
 from lagfluid.physics.mps import ExactAdvection
 from lagfluid.physics.reference import exact_context, mps_constants, mps_neighbor_list, ppe_relative_residual
-from lagfluid.physics.stages import MPSConstants, SolverSettings, SplitStepFields
+from lagfluid.physics.settings import MPSConstants, SolverSettings
+from lagfluid.physics.step_context import SplitStepFields
 from lagfluid.rollout import rollout
 from lagfluid.simulate import timing_summary
 from lagfluid.state import ParticleState

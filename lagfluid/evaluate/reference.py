@@ -19,7 +19,7 @@ from lagfluid.data.store import TrajectoryFileError, open_lagfluid_file
 from lagfluid.errors import ConfigError, RolloutError
 from lagfluid.evaluate.options import EvaluateOptions
 from lagfluid.locks import lock_path, wait_for_lock
-from lagfluid.physics.stages import solver_identity
+from lagfluid.physics.settings import solver_identity
 from lagfluid.simulate import simulate
 
 log = logging.getLogger(__name__)

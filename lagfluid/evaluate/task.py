@@ -35,7 +35,7 @@ from lagfluid.locks import hold_outputs
 from lagfluid.memory import exact_step_bytes
 from lagfluid.models.simulator import Simulator
 from lagfluid.outputs import begin, part_path, publish, write_json
-from lagfluid.physics.stages import SolverSettings
+from lagfluid.physics.settings import SolverSettings
 from lagfluid.state import ParticleState
 from lagfluid.viz import colour_field, stopped_title
 

@@ -29,7 +29,7 @@ from lagfluid.data.store import open_lagfluid_file, read_array
 from lagfluid.errors import ConfigError
 from lagfluid.neighbors import radius_graph
 from lagfluid.physics import operators as ops
-from lagfluid.physics.stages import SolverSettings, lattice_constants
+from lagfluid.physics.settings import SolverSettings, lattice_constants
 from lagfluid.state import ParticleType
 
 

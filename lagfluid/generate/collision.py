@@ -18,7 +18,8 @@ from lagfluid.data.layout import (
 )
 from lagfluid.generate.spec import DataSpec, draw
 from lagfluid.physics.mps import CollisionRule
-from lagfluid.physics.stages import SolverSettings, SplitStepSimulator
+from lagfluid.physics.scheme import SplitStepSimulator
+from lagfluid.physics.settings import SolverSettings
 from lagfluid.state import ParticleState, ParticleType, SceneParams
 
 log = logging.getLogger(__name__)

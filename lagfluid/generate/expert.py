@@ -62,7 +62,8 @@ from lagfluid.locks import hold_outputs
 from lagfluid.models.exact_after import ExactAfter
 from lagfluid.models.mps_simulator import build_mps
 from lagfluid.models.simulator import Simulator
-from lagfluid.physics.stages import SolverSettings, SplitStepSimulator
+from lagfluid.physics.scheme import SplitStepSimulator
+from lagfluid.physics.settings import SolverSettings
 from lagfluid.rollout import Guard, rollout
 from lagfluid.scenes import build_scene
 from lagfluid.state import ParticleState

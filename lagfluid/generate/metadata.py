@@ -25,7 +25,7 @@ from lagfluid.data.layout import (
 )
 from lagfluid.data.statistics import STATISTICS, dataset_statistics
 from lagfluid.generate.spec import DataSpec
-from lagfluid.physics.stages import SolverSettings
+from lagfluid.physics.settings import SolverSettings
 
 log = logging.getLogger(__name__)
 

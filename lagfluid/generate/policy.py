@@ -25,7 +25,9 @@ from torch import Tensor
 
 from lagfluid.errors import ConfigError
 from lagfluid.physics.mps import ExactAdvection, ExactPressure
-from lagfluid.physics.stages import SolverSettings, SplitStepSimulator, StepContext
+from lagfluid.physics.scheme import SplitStepSimulator
+from lagfluid.physics.settings import SolverSettings
+from lagfluid.physics.step_context import StepContext
 from lagfluid.state import SceneParams
 
 POLICIES = (None, "model")  # data.policy: null = the MPS solver moves the particles; model = cfg.model
@@ -37,7 +39,7 @@ class ExpertLabelled:
     Args:
         act: the stage whose output the step integrates (a learned stage).
         expert: the exact stage of the same kind, run only on steps that record their fields.
-        label: the :class:`~lagfluid.physics.stages.SplitStepFields` name of the label
+        label: the :class:`~lagfluid.physics.step_context.SplitStepFields` name of the label
             (``advection_acceleration`` or ``pressure_unclamped``).
     """
 

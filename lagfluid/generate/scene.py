@@ -25,7 +25,7 @@ from lagfluid.generate.collision import write_collision_samples
 from lagfluid.generate.policy import build_policy
 from lagfluid.generate.spec import DataSpec
 from lagfluid.models.mps_simulator import build_mps
-from lagfluid.physics.stages import SolverSettings
+from lagfluid.physics.settings import SolverSettings
 from lagfluid.rollout import Guard, rollout
 from lagfluid.scenes import build_scene
 from lagfluid.state import ParticleState

@@ -21,7 +21,7 @@ from lagfluid.data.layout import (
 )
 from lagfluid.errors import LagfluidError
 from lagfluid.generate.policy import policy_identity
-from lagfluid.physics.stages import solver_identity
+from lagfluid.physics.settings import solver_identity
 from lagfluid.state import SceneParams
 
 log = logging.getLogger(__name__)

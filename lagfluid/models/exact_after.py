@@ -11,8 +11,8 @@ exact stages of the split-step scheme, run on the positions and velocities its s
 
 It is the MPS form of Neural SPH's relaxation (Toshev et al., ICML 2024), which shifts a learned step's
 positions by a few SPH pressure iterations. The stages are the solver's own (:class:`CollisionRule`,
-:class:`ExactPressure` and the updates of :class:`~lagfluid.physics.stages.SplitStepSimulator`, through its
-:meth:`~lagfluid.physics.stages.SplitStepSimulator.exact_stages`): no second copy of the rule or the PPE.
+:class:`ExactPressure` and the updates of :class:`~lagfluid.physics.scheme.SplitStepSimulator`, through its
+:meth:`~lagfluid.physics.scheme.SplitStepSimulator.exact_stages`): no second copy of the rule or the PPE.
 
 **The time step.** The stages use the ``dt`` the model steps by (GNS 8 ms, CConv 2 ms, DeepLagrangian-
 Fluids' CConv 20 ms). The PPE's source is ``-gamma_div div(v)/dt + gamma_n (n - n0)/(dt^2 n0)``, so its
@@ -58,7 +58,8 @@ from omegaconf import DictConfig, OmegaConf
 from lagfluid.errors import ConfigError, RolloutError
 from lagfluid.models.simulator import Simulator
 from lagfluid.physics.mps import CollisionRule, ExactPressure
-from lagfluid.physics.stages import MPSConstants, SolverSettings, SplitStepSimulator
+from lagfluid.physics.scheme import SplitStepSimulator
+from lagfluid.physics.settings import MPSConstants, SolverSettings
 from lagfluid.state import ParticleState
 
 KEY = "model.exact_after"

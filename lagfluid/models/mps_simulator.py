@@ -1,11 +1,12 @@
-"""``model=mps``: the ground-truth MPS solver as a :class:`~lagfluid.physics.stages.SplitStepSimulator`."""
+"""``model=mps``: the ground-truth MPS solver as a :class:`~lagfluid.physics.scheme.SplitStepSimulator`."""
 
 from __future__ import annotations
 
 from typing import Any
 
 from lagfluid.physics.mps import CollisionRule, ExactAdvection, ExactPressure
-from lagfluid.physics.stages import SolverSettings, SplitStepSimulator
+from lagfluid.physics.scheme import SplitStepSimulator
+from lagfluid.physics.settings import SolverSettings
 
 
 def build_mps(cfg: Any) -> SplitStepSimulator:

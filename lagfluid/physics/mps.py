@@ -2,7 +2,7 @@
 
 Koshizuka & Oka (1996) with the pressure solver of Lee et al. (2011), as in the FGN authors' code
 ("MPS step"). Each class implements one stage protocol of
-:mod:`lagfluid.physics.stages`; the learned stages of FGN implement the same protocols.
+:mod:`lagfluid.physics.scheme`; the learned stages of FGN implement the same protocols.
 """
 
 from __future__ import annotations
@@ -15,7 +15,9 @@ from torch import Tensor
 from lagfluid.device_constants import device_constant
 from lagfluid.physics import operators as ops
 from lagfluid.physics.ppe import PPESystem, assemble_ppe, ppe_source, solve_ppe
-from lagfluid.physics.stages import SolverSettings, StepContext, stage_cutoff
+from lagfluid.physics.scheme import stage_cutoff
+from lagfluid.physics.settings import SolverSettings
+from lagfluid.physics.step_context import StepContext
 from lagfluid.state import ParticleType, SceneParams
 
 
@@ -205,5 +207,5 @@ class ExactPressure:
 
 
 def exact_cutoff(settings: SolverSettings, params: SceneParams) -> float:
-    """Neighbour cutoff (in l0) of the MPS solver: :func:`~.stages.stage_cutoff` of the exact stages."""
+    """Neighbour cutoff (in l0) of the MPS solver: :func:`~.scheme.stage_cutoff` of the exact stages."""
     return stage_cutoff(settings, params, ExactAdvection(), CollisionRule(), ExactPressure())

@@ -15,14 +15,9 @@ from lagfluid.errors import MetricInputError
 from lagfluid.neighbor_list import VerletNeighborList
 from lagfluid.physics.mps import exact_cutoff, pressure_system
 from lagfluid.physics.ppe import PPESystem, ppe_residual
-from lagfluid.physics.stages import (
-    MPSConstants,
-    SolverSettings,
-    StageTimer,
-    StepContext,
-    neighbor_list,
-    scene_constants,
-)
+from lagfluid.physics.settings import MPSConstants, SolverSettings, scene_constants
+from lagfluid.physics.step_context import StepContext, neighbor_list
+from lagfluid.physics.timing import StageTimer
 from lagfluid.state import ParticleState
 
 __all__ = ["exact_context", "exact_ppe", "mps_constants", "mps_neighbor_list", "ppe_relative_residual"]

@@ -1,9 +1,9 @@
 """The inputs of FGN's networks, built by one function per network for training and inference alike.
 
 Training (:mod:`lagfluid.models.fgn.trainables`, batches of dataset items) and inference
-(:mod:`lagfluid.models.fgn.stages`, one scene inside the split-step scheme) find their graphs differently,
-but both hand the graph and the per-particle and per-scene fields to these functions, so what a network
-sees cannot differ between the two. Each returns the network's positional arguments, in the network's
+(:mod:`lagfluid.models.fgn.learned_stages`, one scene inside the split-step scheme) find their graphs
+differently, but both hand the graph and the per-particle and per-scene fields to these functions, so what a
+network sees cannot differ between the two. Each returns the network's positional arguments, in the network's
 float type ``dtype``; ``net(*args)`` is the standardised output, ``net.predict(*args)`` the physical one.
 
 ``batch`` (N,) says which graph (sample) each node belongs to and picks that graph's row of a per-graph

@@ -30,7 +30,7 @@ from torch_geometric.utils import scatter
 from lagfluid.errors import LagfluidError
 from lagfluid.physics.mps import pressure_system
 from lagfluid.physics.reference import exact_context
-from lagfluid.physics.stages import MPSConstants, SolverSettings
+from lagfluid.physics.settings import MPSConstants, SolverSettings
 
 __all__ = ["BORDERLINE", "LABEL_TOLERANCE", "WithPPESystem", "ppe_residual_rows"]
 

@@ -1,6 +1,6 @@
 """``model=fgn``, ``model=hybrid`` and ``model=fgn_original``: the split-step scheme with learned stages.
 
-The update scheme is MPS's (:class:`~lagfluid.physics.stages.SplitStepSimulator`); ``model.stages`` picks,
+The update scheme is MPS's (:class:`~lagfluid.physics.scheme.SplitStepSimulator`); ``model.stages`` picks,
 per stage, ``learned`` (the network), ``exact`` (the MPS stage) or ``none`` (skip it), so a user can trade
 speed for accuracy stage by stage (e.g. exact advection + learned pressure).
 
@@ -25,13 +25,14 @@ from omegaconf import OmegaConf
 
 from lagfluid.errors import ConfigError
 from lagfluid.models.checkpoint import CheckpointError, MissingWeightsError
+from lagfluid.models.fgn.learned_stages import LearnedAdvection, LearnedCollision, LearnedPressure
 from lagfluid.models.fgn.networks import KINDS, load_network, owned_stages
 from lagfluid.models.fgn.original import load_original_network
-from lagfluid.models.fgn.stages import LearnedAdvection, LearnedCollision, LearnedPressure
 from lagfluid.models.layers import parameter_count
 from lagfluid.models.training_range import RangeWarner, range_from_checkpoint_meta
 from lagfluid.physics.mps import CollisionRule, ExactAdvection, ExactPressure
-from lagfluid.physics.stages import SolverSettings, SplitStepSimulator
+from lagfluid.physics.scheme import SplitStepSimulator
+from lagfluid.physics.settings import SolverSettings
 from lagfluid.state import ParticleState, parse_dtype
 
 log = logging.getLogger(__name__)

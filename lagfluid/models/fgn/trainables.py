@@ -49,15 +49,15 @@ from lagfluid.models.fgn.networks import build_network, owned_stages
 from lagfluid.models.fgn.ppe_term import WithPPESystem, ppe_residual_rows
 from lagfluid.neighbors import edge_vectors, radius_graph
 from lagfluid.physics import operators as ops
-from lagfluid.physics.stages import SolverSettings, lattice_constants
+from lagfluid.physics.settings import SolverSettings, lattice_constants
 from lagfluid.state import ParticleType
 
 __all__ = [
-    "AdvectionStage",
+    "AdvectionTrainable",
     "CachedDataset",
-    "CollisionStage",
-    "FGNStage",
-    "PressureStage",
+    "CollisionTrainable",
+    "FGNTrainable",
+    "PressureTrainable",
     "ResampledMaterials",
     "build_trainables",
     "kernel_graph",
@@ -208,8 +208,8 @@ def _fluid_speed(items: Sequence[Data]) -> Tensor:
     return fluid_vel.norm(dim=1, keepdim=True) + 1e-8
 
 
-# ---------------------------------------------------------------------------------------------- stages
-class FGNStage:
+# ------------------------------------------------------------------------------------------ trainables
+class FGNTrainable:
     """One of FGN's networks as a trainable: its samples, statistics, inputs and target.
 
     Args:
@@ -251,11 +251,11 @@ class FGNStage:
         return kernel_graph(batch.pos, radius, batch.batch, receivers)
 
 
-class AdvectionStage(FGNStage):
+class AdvectionTrainable(FGNTrainable):
     """The advection net: ``[v^n, type, g, nu]`` on the kernel graph -> ``a`` (fluid rows).
 
     Args:
-        name, options: as :class:`FGNStage`.
+        name, options: as :class:`FGNTrainable`.
         materials: ``train.materials`` (``resample``, ``gravity``, ``viscosity``, ``log_uniform``).
         settings: solver settings (the Laplacian of resampled labels).
         seed: seed of the material draws (validation: ``seed + 1``, fixed per item).
@@ -320,7 +320,7 @@ class AdvectionStage(FGNStage):
         return net(*inputs)[fluid], net.target(batch.y)
 
 
-class CollisionStage(FGNStage):
+class CollisionTrainable(FGNTrainable):
     """The collision net: pairs within its radius -> ``v** - v*`` (fluid rows), scaled not centred."""
 
     samples = CollisionSamples
@@ -352,11 +352,11 @@ class CollisionStage(FGNStage):
         return out[fluid], batch.y / net.target.std
 
 
-class PressureStage(FGNStage):
+class PressureTrainable(FGNTrainable):
     """The pressure net: ``[v**, n / n0, type]`` on the PPE unknowns' kernel graph -> ``p`` (every node).
 
     Args:
-        name, options: as :class:`FGNStage`.
+        name, options: as :class:`FGNTrainable`.
         ppe_weight: ``train.ppe_weight``; > 0 adds the squared relative PPE residual of the prediction
             (paper eq. 31) at this weight (:mod:`lagfluid.models.fgn.ppe_term`): :meth:`predict` then returns
             the residual rows after the pressure rows (target 0), and the loss averages over both.
@@ -413,7 +413,7 @@ class PressureStage(FGNStage):
         return torch.cat([pred, rows]), torch.cat([target, torch.zeros_like(rows)])
 
 
-def build_trainables(cfg: Any) -> dict[str, FGNStage]:
+def build_trainables(cfg: Any) -> dict[str, FGNTrainable]:
     """``model=fgn`` / ``hybrid`` / an ablation's trainables by name, from the composed config.
 
     Reads ``cfg.model.<name>`` (network options), ``cfg.model.trains`` (the stages the model owns; FGN all
@@ -430,11 +430,11 @@ def build_trainables(cfg: Any) -> dict[str, FGNStage]:
     settings = SolverSettings.from_config(cfg.solver)
     materials = plain(cfg.train.materials)
     stages = {
-        "advection": AdvectionStage(
+        "advection": AdvectionTrainable(
             "advection", plain(cfg.model.advection), materials, settings, int(cfg.seed)
         ),
-        "collision": CollisionStage("collision", plain(cfg.model.collision)),
-        "pressure": PressureStage(
+        "collision": CollisionTrainable("collision", plain(cfg.model.collision)),
+        "pressure": PressureTrainable(
             "pressure", plain(cfg.model.pressure), float(cfg.train.get("ppe_weight") or 0.0)
         ),
     }

@@ -1,9 +1,9 @@
-"""FGN's learned stages: its networks behind the stage protocols of :mod:`lagfluid.physics.stages`.
+"""FGN's learned stages: its networks behind the stage protocols of :mod:`lagfluid.physics.scheme`.
 
-Each stage asks the step's :class:`~lagfluid.physics.stages.StepContext` for its radius graph (so graphs are
-shared with the exact stages and never searched twice at one set of positions), keeps only the particles
-that graph touches (a scene's ~80k static boundary particles mostly never enter), runs its network there
-and returns what the exact stage would return. Only the networks differ between ``model=mps``, ``fgn`` and
+Each stage asks the step's :class:`~lagfluid.physics.step_context.StepContext` for its radius graph (so graphs
+are shared with the exact stages and never searched twice at one set of positions), keeps only the particles
+that graph touches (a scene's ~80k static boundary particles mostly never enter), runs its network there and
+returns what the exact stage would return. Only the networks differ between ``model=mps``, ``fgn`` and
 ``hybrid``; the update scheme around them is the same code. The networks' inputs come from
 :mod:`lagfluid.models.fgn.inputs`, the functions training uses too.
 """
@@ -18,7 +18,8 @@ from lagfluid.device_constants import device_constant
 from lagfluid.models.fgn.inputs import advection_inputs, collision_inputs, pressure_inputs
 from lagfluid.models.fgn.networks import AdvectionNet, CollisionNet, PressureNet
 from lagfluid.physics import operators as ops
-from lagfluid.physics.stages import SolverSettings, StepContext
+from lagfluid.physics.settings import SolverSettings
+from lagfluid.physics.step_context import StepContext
 from lagfluid.state import SceneParams
 
 
