@@ -566,15 +566,15 @@ PLANTS = [
     (
         "dagger: windows without enough frames before their label",
         "lagfluid/data/expert_windows.py",
-        "(frames >= self.history) & (frames < info.frames)",
+        "(frames >= self.first) & (frames < info.frames)",
         "(frames >= 0) & (frames < info.frames)",
         "tests/test_dagger.py::test_a_dagger_window_is_the_models_frames_and_its_target_the_inverse_of_mps_answer",
     ),
     (
         "dagger: GNS reads a DAgger dataset as a solver trajectory",
         "lagfluid/data/expert_windows.py",
-        "    cls = ExpertWindows if is_expert_dataset(load_metadata(root)) else TrajectoryWindows",
-        "    cls = TrajectoryWindows",
+        "    if is_expert_dataset(load_metadata(root)):",
+        "    if False:",
         "tests/test_dagger.py::test_a_dagger_window_is_the_models_frames_and_its_target_the_inverse_of_mps_answer",
     ),
     (
@@ -731,8 +731,8 @@ PLANTS = [
     (
         "GNS windows start at H + K, not at the warm start's H",
         "baselines/gns/trainable.py",
-        'trajectory_windows(data_dir, "train", history=frames, first=first)',
-        'trajectory_windows(data_dir, "train", history=frames, first=None)',
+        'trajectory_windows(data_dir, "train", history=frames, first=first, stride=stride)',
+        'trajectory_windows(data_dir, "train", history=frames, first=None, stride=stride)',
         "tests/test_gns.py::test_the_windows_start_at_the_first_frame_a_warm_started_rollout_steps_from",
     ),
     (
@@ -838,6 +838,43 @@ PLANTS = [
         "tmp = path",
         "tests/test_provenance.py::test_a_failure_mid_write_leaves_the_old_results_intact",
     ),
+    # issue 35, session 7: GNS's frame interval (train.frame_stride), DAgger's refusal of it, gpu_day.sh
+    (
+        "stride windows: the history taken from consecutive stored frames, not every s-th",
+        "lagfluid/data/datasets.py",
+        "np.arange(t - self.history * s, t + after * s + 1, s)",
+        "np.arange(t - (self.history + after) - 1, t + after * s + 1)[-(self.history + 1 + after) :]",
+        "tests/test_gns.py::test_trajectory_windows_with_a_frame_stride_take_every_other_stored_frame",
+    ),
+    (
+        "stride windows: the frame spacing not scaled by the stride",
+        "lagfluid/data/datasets.py",
+        'frame_dt=torch.tensor([float(a["dt"]) * every * self.stride], dtype=torch.float32),',
+        'frame_dt=torch.tensor([float(a["dt"]) * every], dtype=torch.float32),',
+        "tests/test_gns.py::test_trajectory_windows_with_a_frame_stride_take_every_other_stored_frame",
+    ),
+    (
+        "GNS's trainable ignores train.frame_stride",
+        "baselines/gns/trainable.py",
+        "frames, first, stride = self.history + max(self.unrolls), self.history, self.frame_stride",
+        "frames, first, stride = self.history + max(self.unrolls), self.history, 1",
+        "tests/test_gns.py::test_train_frame_stride_reaches_the_windows_and_a_bad_one_is_refused",
+    ),
+    (
+        "DAgger rounds accept a frame stride (refused only after round 1's rollouts)",
+        "lagfluid/dagger_rounds.py",
+        "if values[\"rounds\"] and stride != 1:",
+        "if False:",
+        "tests/test_dagger.py::test_bad_dagger_settings_are_refused_before_anything_runs",
+    ),
+    (
+        "gpu_day.sh writes into an OUT that holds an earlier day's files",
+        "benchmarks/gpu_day.sh",
+        'if [ -n "$(ls -A "$out")" ]; then',
+        "if false; then",
+        "tests/test_gpu_train.py::test_a_day_into_an_out_that_holds_files_is_refused_untouched",
+    ),
+
 ]
 
 
