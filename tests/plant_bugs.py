@@ -863,7 +863,7 @@ PLANTS = [
     (
         "DAgger rounds accept a frame stride (refused only after round 1's rollouts)",
         "lagfluid/dagger_rounds.py",
-        "if values[\"rounds\"] and stride != 1:",
+        'if values["rounds"] and stride != 1:',
         "if False:",
         "tests/test_dagger.py::test_bad_dagger_settings_are_refused_before_anything_runs",
     ),
@@ -874,7 +874,6 @@ PLANTS = [
         "if false; then",
         "tests/test_gpu_train.py::test_a_day_into_an_out_that_holds_files_is_refused_untouched",
     ),
-
 ]
 
 
