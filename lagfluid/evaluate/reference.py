@@ -20,11 +20,10 @@ from lagfluid.errors import ConfigError, RolloutError
 from lagfluid.evaluate.options import EvaluateOptions
 from lagfluid.locks import lock_path, wait_for_lock
 from lagfluid.physics.settings import solver_identity
+from lagfluid.plugin_configs import CONF_DIR
 from lagfluid.simulate import simulate
 
 log = logging.getLogger(__name__)
-
-CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
 
 
 def _file_digest(path: Path) -> str:
