@@ -88,6 +88,32 @@ def test_kinetic_energy_of_runs_at_two_spacings_uses_each_runs_particle_mass(tmp
     assert out["kinetic_energy_error_rel_peak"] == pytest.approx([0.0] * 3, abs=1e-6)
 
 
+def test_frames_meet_the_reference_despite_float32_drift_and_a_miss_is_said(tmp_path, caplog):
+    """A 16 ms model whose dt reads 0.016000001 (float32) meets a reference stored every 16 ms at every frame
+    (1e-9 s of drift a frame); frames 5 ms apart meet one stored every 16 ms at t = 0 only, and the log says
+    the metrics are of that frame alone instead of passing a Chamfer distance of 0 off as a perfect model."""
+    from lagfluid.data.store import TrajectoryWriter
+    from lagfluid.evaluate.compare import compare
+    from lagfluid.physics.settings import SolverSettings
+
+    pos = np.stack(np.meshgrid(*[np.arange(3) * 0.05] * 3, indexing="ij"), -1).reshape(-1, 3) + 1.0
+
+    def write(path, dt, frames, every):
+        attrs = {"dt": dt, "l0": 0.05, "density": 1000.0, "dim": 3}
+        with TrajectoryWriter(path, len(pos), np.zeros((1, 3)), np.array([2]), attrs) as w:
+            for k in range(frames):
+                w.append(dt * every * k, pos, np.zeros_like(pos), np.zeros(len(pos)))
+        return path
+
+    ref = write(tmp_path / "ref.h5", 0.002, 64, 8)  # every 16 ms to 1 s
+    with caplog.at_level("WARNING", logger="lagfluid.evaluate.compare"):
+        out = compare(write(tmp_path / "drift.h5", 0.016000001, 60, 1), ref, SolverSettings())
+    assert out["step"] == list(range(60)) and not caplog.records
+    with caplog.at_level("WARNING", logger="lagfluid.evaluate.compare"):
+        out = compare(write(tmp_path / "off.h5", 0.005, 5, 1), ref, SolverSettings())
+    assert out["step"] == [0] and "5 stored frames, but 1 at a time" in caplog.text
+
+
 def test_field_metrics_without_interior_particles_are_zero():
     pos = torch.tensor([[0.0, 0, 0], [10, 0, 0]], dtype=torch.float64)
     m = field_metrics(pos, torch.zeros_like(pos), torch.ones(2, dtype=torch.int64), 1.0, 2.1, 2.1)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -24,6 +25,8 @@ from lagfluid.metrics import (
 )
 from lagfluid.physics.settings import SolverSettings, lattice_constants
 from lagfluid.state import ParticleType
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -97,15 +100,16 @@ def _field(
 def common_frames(model: Trajectory, ref: Trajectory) -> list[tuple[int, int]]:
     """``(model frame, reference frame)`` index pairs stored at the same time (the model's dt may differ).
 
-    A model frame matches when its time lies on the reference's step grid (to 1e-6 of a reference step)
-    and the reference stored that step.
+    A model frame matches when its time lies on the reference's step grid and the reference stored that
+    step. The tolerance is 1e-6 of a reference step or of the time, whichever is larger: a model's dt read
+    from float32 (0.016000001 s) drifts off the grid by 1e-9 s a frame, far less than a step.
     """
     dt_ref = float(ref.attrs["dt"])
     ref_index = {s: i for i, s in enumerate(ref.steps)}
     pairs = []
     for i, t in enumerate(model.times):
         s = round(t / dt_ref)
-        if abs(t - s * dt_ref) <= 1e-6 * dt_ref and s in ref_index:
+        if abs(t - s * dt_ref) <= 1e-6 * max(dt_ref, abs(t)) and s in ref_index:
             pairs.append((i, ref_index[s]))
     return pairs
 
@@ -134,7 +138,17 @@ def compare(model_path: Path, reference_path: Path, settings: SolverSettings) ->
         out: dict[str, Any] = {k: [] for k in ("step", "time_s", "chamfer_mm", "position_mse_m2")}
         pairs = {k: {"model": [], "reference": []} for k in ("density_error", "velocity_divergence_per_s")}
         pairs["kinetic_energy_J"] = {"model": [], "reference": []}
-        for i, j in common_frames(model, ref):
+        common = common_frames(model, ref)
+        if len(model.times) > 1 and len(common) <= 1:  # a mean over frame 0 alone reads as a perfect model
+            log.warning(
+                "%s: %d stored frames, but %d at a time %s stored: the metrics are of that frame alone; "
+                "choose write_every so that the frames meet the reference's",
+                model_path,
+                len(model.times),
+                len(common),
+                reference_path,
+            )
+        for i, j in common:
             mp, mv, _ = model.frame(i)
             rp, rv, _ = ref.frame(j)
             out["step"].append(model.steps[i])
