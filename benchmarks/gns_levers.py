@@ -33,10 +33,9 @@ LEVERS: tuple[tuple[str, str, str], ...] = (
         "fixes",
     ),
     (
-        "fixed",
-        "baselines/gns/weights/in_progress",
-        "retrained with the window and statistics fixes (experiment=retrain_gns, 1,600 iterations, 8 ms "
-        "frames)",
+        "dagger",
+        "baselines/gns/weights/dagger",
+        "the fixed weights after 4 DAgger rounds (model=gns_dagger; their MODEL_CARD.md)",
     ),
 )
 """(name, weights folder, what made them): the levers always measured; ``--levers`` adds others."""

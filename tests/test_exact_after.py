@@ -363,6 +363,33 @@ def test_the_tables_list_the_exact_after_rows_under_their_own_labels():
         assert build_simulator(cfg).name == f"{base} + exact collision + MPS pressure"
 
 
+def test_gns_dagger_ships_its_weights_and_its_exact_row_runs_them_with_k3():
+    """``model=gns_dagger`` loads the DAgger weights shipped beside their card, under its own name; its
+    exact row is the one that completes the dam: collision and pressure, K = 3 at relaxation 0.5."""
+    from baselines.gns.simulator import DAGGER
+    from benchmarks.tables.config import compose_config
+    from benchmarks.tables.simulators import all_simulators, simulator
+
+    assert (DAGGER / "MODEL_CARD.md").is_file()
+    sim = build_simulator(compose_config(["model=gns_dagger", "scene=dam"]))
+    assert (sim.name, sim.weights, sim.dt) == ("gns_dagger", str(DAGGER / "gns.pt"), 0.008)
+    assert build_simulator(compose_config(["model=gns", "scene=dam"])).weights != sim.weights
+    plain, exact = simulator("gns_dagger"), simulator("gns_dagger_exact")
+    assert (plain.label, plain.model, exact.model) == ("GNS (CPU size), DAgger", "gns_dagger", "gns_dagger")
+    assert exact.label == "GNS (CPU size), DAgger + exact collision + MPS pressure (K=3, w=0.5)"
+    assert "not the plain row" in exact.note
+    keys = [s.key for s in all_simulators()]
+    assert keys.index("gns_dagger") + 1 == keys.index("gns_dagger_exact")
+    cfg = compose_config(["experiment=table3_dam_gns_dagger_exact"])
+    assert (cfg.steps, cfg.write_every) == (125, 5)
+    assert dict(cfg.model.exact_after) == {
+        "collision": True,
+        "pressure": True,
+        "iterations": 3,
+        "relaxation": 0.5,
+    }
+
+
 def test_the_benchmark_rolls_out_the_weights_it_is_given():
     """``benchmarks.exact_after --weights DIR`` runs every row on ``model.weights=DIR`` (the GNS
     frame-interval measurement's 16 ms network), none without it (the shipped weights)."""

@@ -3,6 +3,7 @@ state handling, training and the plugin path (seconds)."""
 
 from contextlib import nullcontext
 from importlib import metadata
+from types import SimpleNamespace
 
 import h5py
 import numpy as np
@@ -497,6 +498,22 @@ def test_the_warm_start_is_mps_and_a_foreign_state_is_refused():
         sim.step(warm)
     with pytest.raises(RolloutError, match="earlier frames"):
         GNSSimulator(_net(dtype=torch.float32), None, "test").reset(state)
+
+
+@pytest.mark.parametrize("frame_dt", [0.008, 0.016, 0.02])
+def test_the_frame_spacing_is_the_decimal_the_float32_buffer_was_stored_from(frame_dt):
+    """A 16 ms network's float32 buffer reads 0.016000001: its frames' times would miss the reference's
+    2 ms grid from the fourth frame on (``common_frames``' tolerance is 2e-9 s), and an evaluation would
+    compare frame 0 only (``benchmarks/results/gns_levers.md``'s first 16 ms rows)."""
+    from lagfluid.evaluate.compare import common_frames
+
+    net = _net(dtype=torch.float32)
+    net.frame_dt.fill_(frame_dt)
+    sim = GNSSimulator(net, None, "test")
+    assert sim.dt == frame_dt and sim.solver_dt == 0.002
+    model = SimpleNamespace(times=[k * sim.dt for k in range(0, 60, 2)])
+    ref = SimpleNamespace(attrs={"dt": 0.002}, steps=list(range(0, 600, 1)))
+    assert len(common_frames(model, ref)) == 30
 
 
 def test_tiny_training_lowers_the_loss(tiny_data, tmp_path):

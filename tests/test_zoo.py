@@ -16,7 +16,7 @@ from lagfluid.models.fgn.networks import load_network
 
 REPO = Path(__file__).resolve().parents[1]
 FGN_WEIGHTS = REPO / "lagfluid" / "weights" / "fgn"
-GNS_WEIGHTS = REPO / "baselines" / "gns" / "weights" / "in_progress" / "gns.pt"
+GNS_WEIGHTS = REPO / "baselines" / "gns" / "weights" / "dagger" / "gns.pt"
 
 
 def _readme_section(title: str) -> str:

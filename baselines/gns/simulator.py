@@ -18,6 +18,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 from omegaconf import OmegaConf
 
@@ -43,6 +44,8 @@ from .trainable import NAME
 
 SHIPPED = Path(__file__).resolve().parent / "weights"
 """The shipped weights (``gns.pt``) and their model card."""
+DAGGER = SHIPPED / "dagger"
+"""``model=gns_dagger``'s shipped weights: GNS trained on its own rollouts' states (DAgger; card there)."""
 BYTES_PER_EDGE = 1300.0
 """Memory per graph edge of a step (latent edge features of every block), rounded up from the measurement."""
 
@@ -54,6 +57,7 @@ class GNSSimulator:
         net: a trained :class:`GNSNet` (statistics and ``frame_dt`` set), on the run's device and dtype.
         warm_start: the MPS simulator of the warm start (None: a rollout needs ``history``).
         weights: where the weights came from (stored with every rollout).
+        name: the model's name (``model.name``): which shipped weights these are.
     """
 
     name = NAME
@@ -63,11 +67,12 @@ class GNSSimulator:
     # runs into. The training frames (data=cpu, 8 ms apart) reach 0.8; MPS's own limit, 0.5, is for its 2 ms.
     max_courant = 1.0
 
-    def __init__(self, net: GNSNet, warm_start: Simulator | None, weights: str) -> None:
+    def __init__(self, net: GNSNet, warm_start: Simulator | None, weights: str, name: str = NAME) -> None:
+        self.name = name  # the model's name in tables and rollouts (gns, gns_dagger)
         self.net = net.eval()
         self.history_length = net.history
-        self.dt = round(float(net.frame_dt), 9)  # frames are whole ns apart; the buffer may be float32
-        self.solver_dt = round(float(net.solver_dt), 9)
+        self.dt = seconds_of(net.frame_dt)
+        self.solver_dt = seconds_of(net.solver_dt)
         if not self.dt > 0:
             raise RolloutError("the GNS weights hold no frame spacing (frame_dt); were they trained?")
         self.warm_start = warm_start
@@ -76,7 +81,7 @@ class GNSSimulator:
         trained = (
             checkpoint_range(weights, ("l0", "gravity", "viscosity")) if Path(weights).is_file() else None
         )
-        self._ranges = RangeWarner(NAME, {NAME: {"range": trained}})
+        self._ranges = RangeWarner(name, {NAME: {"range": trained}})
         self.last_info: dict[str, float] = {}
         self._timer = StageTimer()  # the last step's
         self._velocities: torch.Tensor | None = None  # (Nf, H, 3) the last H velocities, oldest first
@@ -247,6 +252,17 @@ class GNSSimulator:
         }
 
 
+def seconds_of(buffer: torch.Tensor) -> float:
+    """The time step in a network buffer, as the decimal it was stored from (0.016, not 0.016000001).
+
+    The buffer is float32 (or float32 cast up): its nearest float64 differs from the decimal by up to 6e-8
+    relative, and the frames' times ``k dt`` must land on the reference's grid (to 1e-6 of its 2 ms step,
+    :func:`lagfluid.evaluate.compare.common_frames`). The shortest decimal that rounds to the same float32 is
+    the one written.
+    """
+    return float(str(np.float32(float(buffer))))
+
+
 def load_gns(path: str | Path, device: str = "cpu", dtype: torch.dtype = torch.float32) -> GNSNet:
     """The :class:`GNSNet` of a checkpoint ``path`` (``gns.pt``) on ``device`` in ``dtype``.
 
@@ -280,6 +296,16 @@ def build_simulator(cfg: Any) -> GNSSimulator:
         options = OmegaConf.to_container(cfg.model[NAME], resolve=True)
         net = untrained_network(options, scene_params(cfg).dt).to(torch.device(str(cfg.device)), dtype)
         return GNSSimulator(net, build_mps(cfg), UNTRAINED)
-    folder = Path(str(cfg.model.weights)) if cfg.model.get("weights") else SHIPPED
-    net = load_gns(folder / f"{NAME}.pt", str(cfg.device), dtype)
-    return GNSSimulator(net, build_mps(cfg), str(folder / f"{NAME}.pt"))
+    return _trained(cfg, NAME, SHIPPED)
+
+
+def build_dagger(cfg: Any) -> GNSSimulator:
+    """``model=gns_dagger``: GNS after DAgger rounds (:data:`DAGGER`; ``model.weights`` another folder)."""
+    return _trained(cfg, "gns_dagger", DAGGER)
+
+
+def _trained(cfg: Any, name: str, shipped: Path) -> GNSSimulator:
+    """The simulator ``name`` of ``model.weights/gns.pt`` (null: ``shipped``'s), MPS warm start."""
+    folder = Path(str(cfg.model.weights)) if cfg.model.get("weights") else shipped
+    net = load_gns(folder / f"{NAME}.pt", str(cfg.device), getattr(torch, str(cfg.dtype)))
+    return GNSSimulator(net, build_mps(cfg), str(folder / f"{NAME}.pt"), name)
