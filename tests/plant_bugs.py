@@ -40,14 +40,14 @@ PLANTS = [
     (
         "training resume does not restore the weights",
         "lagfluid/train.py",
-        '        net.load_state_dict(ckpt["state_dict"])',
+        '        self.net.load_state_dict(ckpt["state_dict"])',
         "        pass  # planted",
         "tests/test_fgn.py::test_a_resumed_training_ends_with_the_uninterrupted_runs_weights",
     ),
     (
         "training resume does not restore the Adam state",
         "lagfluid/train.py",
-        '        optimizer.load_state_dict(ckpt["optimizer"])',
+        '        self.optimizer.load_state_dict(ckpt["optimizer"])',
         "        pass  # planted",
         "tests/test_fgn.py::test_a_resumed_training_ends_with_the_uninterrupted_runs_weights",
     ),
@@ -239,8 +239,8 @@ PLANTS = [
     (
         "a training rerun without a checkpoint appends to the old loss log",
         "lagfluid/train.py",
-        "    if main:\n        _start_csv(csv_path, start_step)",
-        "    if main and start_step > 0:\n        _start_csv(csv_path, start_step)",
+        "        if self.main:\n            _start_csv(self.csv_path, self.step)",
+        "        if self.main and self.step > 0:\n            _start_csv(self.csv_path, self.step)",
         "tests/test_fgn.py::test_a_resumed_trainings_loss_log_is_the_uninterrupted_runs[before-the-first-checkpoint]",
     ),
     (
@@ -481,8 +481,8 @@ PLANTS = [
     (
         "train.max_seconds ignored",
         "lagfluid/train.py",
-        "stopped = not last and deadline is not None and time.monotonic() >= deadline",
-        "stopped = False",
+        "return not last and self.deadline is not None and time.monotonic() >= self.deadline",
+        "return False",
         "tests/test_train.py::test_max_seconds_stops_after_a_checkpoint_and_the_same_command_continues_exactly",
     ),
     (
