@@ -181,13 +181,29 @@ def _write_preview(out_dir: Path, frames: _FrameMetrics, state: ParticleState, t
 
 def simulate(cfg: DictConfig) -> dict[str, Any]:
     """``task=simulate``: roll out ``cfg.model`` on ``cfg.scene`` and write the three output files."""
+    state, simulator, settings, guard = _set_up(cfg)
+    out_dir = Path(cfg.out_dir)
+    with hold_outputs(out_dir, "simulate"):  # a second run into out_dir is refused, before it touches it
+        return _simulate_in(out_dir, cfg, state, simulator, settings, guard)
+
+
+def _set_up(cfg: DictConfig) -> tuple[ParticleState, Simulator, SolverSettings, Guard]:
+    """Everything that can fail before the first step, before ``out_dir`` is touched.
+
+    Returns:
+        The initial state at the simulator's time step, the simulator (reset on it), the solver settings and
+        the run's guard.
+
+    Raises:
+        RolloutError: ``steps < 0`` or ``write_every < 1``; and whatever the checks of the export format,
+            scene, model and weights, memory and the simulator's per-scene set-up raise.
+    """
     torch.manual_seed(int(cfg.seed))
     apply_threads(cfg)
     if int(cfg.steps) < 0 or int(cfg.write_every) < 1:
         raise RolloutError(
             f"need steps >= 0 and write_every >= 1, got steps={cfg.steps}, write_every={cfg.write_every}"
         )
-    # Everything that can fail before the first step does so here, before out_dir is touched.
     if cfg.get("export") is not None:
         from lagfluid.export import check_format
 
@@ -200,9 +216,7 @@ def simulate(cfg: DictConfig) -> dict[str, Any]:
     guard = run_guard(cfg, simulator)
     check_run_memory(cfg, state, simulator)  # before the first neighbour search
     simulator.reset(state, history)  # per-scene set-up can fail too (a plugin's checks, the history)
-    out_dir = Path(cfg.out_dir)
-    with hold_outputs(out_dir, "simulate"):  # a second run into out_dir is refused, before it touches it
-        return _simulate_in(out_dir, cfg, state, simulator, settings, guard)
+    return state, simulator, settings, guard
 
 
 def _simulate_in(
@@ -213,126 +227,9 @@ def _simulate_in(
     settings: SolverSettings,
     guard: Guard,
 ) -> dict[str, Any]:
-    """The run of :func:`simulate` once everything is checked and ``out_dir`` is locked."""
-    params, nf = state.params, state.n_fluid
-    write_every = int(cfg.write_every)
-    total_frames = int(cfg.steps) // write_every + 1 + (1 if int(cfg.steps) % write_every else 0)
-    frames = _FrameMetrics(state, settings, total_frames, colour_field(simulator))
-    checkpoint = RolloutCheckpoint(
-        out_dir, run_settings(cfg), simulator.history_length, float(cfg.checkpoint_every_s)
-    )
-    checkpoint.memory = getattr(simulator, "rollout_memory", None)
-    record: dict[str, Any] = {"step_seconds": [], "stage_seconds": {}, "info": {}}
-    wall_before = 0.0
-    start_state = state  # a trajectory start's state already counts the steps before its frame
-    if bool(cfg.resume):  # checked before any file is touched, as everything else
-        start_state, before, memory, written, extra = checkpoint.load(state)
-        if start_state.step - state.step > int(cfg.steps):
-            raise RolloutError(
-                f"resume=true: the run in {out_dir} is at step {start_state.step - state.step}, past "
-                f"steps={cfg.steps}"
-            )
-        if simulator.history_length:  # the history the run had (constants stay the start's, see module doc)
-            simulator.reset(start_state, before)
-            if memory and hasattr(simulator, "restore_rollout_memory"):
-                simulator.restore_rollout_memory(start_state, memory)
-        for state_before in before:
-            checkpoint.on_step(state_before, start_state, None)
-        record, wall_before = extra["record"], float(extra["wall_time_s"])
-        frames.load_state_dict(extra["frames"], start_state)
-        writer = _reopen_partial_trajectory(out_dir, written)
-        begin(out_dir, OUTPUTS[1:])
-        log.info("resuming %s at step %d (%d frames stored)", out_dir, start_state.step, written)
-    else:
-        begin(out_dir, OUTPUTS)
-        checkpoint.remove()
-        attrs = run_attributes(state, cfg, simulator.name, str(cfg.scene.name), write_every)
-        boundary = slice(nf, None)
-        writer = TrajectoryWriter(
-            part_path(out_dir / "rollout.h5"),
-            nf,
-            state.pos[boundary].cpu().numpy(),
-            state.ptype[boundary].cpu().numpy(),
-            attrs,
-            dtype=stored_dtype(state),
-        )
-    commit = str(writer.group.attrs.get("git_commit", ""))
-    start = time.perf_counter()
-
-    def on_frame(s: ParticleState) -> None:
-        writer.append(
-            s.time,
-            s.pos[:nf].detach().cpu().numpy(),
-            s.vel[:nf].detach().cpu().numpy(),
-            s.pressure[:nf].detach().cpu().numpy(),
-        )
-        frames(s)
-        extra = {
-            "record": record,
-            "frames": frames.state_dict(),
-            "wall_time_s": wall_before + time.perf_counter() - start,
-        }
-        checkpoint.maybe_save(s, writer.frames, extra)
-
-    stop_reason, complete, by_guard = "", True, False
-    try:
-        _, record = rollout(
-            simulator,
-            start_state,
-            int(cfg.steps) - (start_state.step - state.step),
-            guard=guard,
-            write_every=write_every,
-            on_frame=on_frame,
-            on_step=checkpoint.on_step,
-            progress=bool(cfg.progress),
-            reset=False,
-            step_offset=start_state.step - state.step,
-            record=record,
-        )
-    except BaseException as err:  # a guard stop, a bug, Ctrl-C: the file says the run is incomplete and why
-        by_guard = isinstance(err, RolloutError)  # the guard's stop; else Ctrl-C, SIGTERM or a bug
-        stop_reason = str(err) if by_guard else f"{type(err).__name__}: {err}"
-        complete = False
-        if isinstance(err, KeyboardInterrupt):  # Ctrl-C or SIGTERM: resume=true continues from the last frame
-            checkpoint.save_latest()
-        record = getattr(err, "record", record)
-        raise
-    finally:
-        try:
-            if complete:
-                checkpoint.remove()
-            writer.set_attributes(simulator.attributes())
-            writer.close(complete=complete, stop_reason=stop_reason)
-            metrics = {
-                "model": simulator.name,
-                "scene": str(cfg.scene.name),
-                "complete": complete,
-                "stop_reason": stop_reason,
-                "steps_requested": int(cfg.steps),
-                "steps": len(record["step_seconds"]),
-                "dt": params.dt,
-                "device": str(cfg.device),
-                "dtype": str(cfg.dtype),
-                "parameters": int(simulator.parameters),
-                "particles": {
-                    "fluid": nf,
-                    "wall": int(state.wall_mask.sum()),
-                    "dummy": int(state.dummy_mask.sum()),
-                },
-                **timing_summary(record),
-                "density_error": summarize(frames.density_errors),
-                "velocity_divergence_per_s": summarize(frames.divergences),
-                "frames_evaluated": len(frames.density_errors),
-                "wall_time_total_s": wall_before + time.perf_counter() - start,
-                "simulator": simulator.attributes(),
-                "version": lagfluid.__version__,
-                "git_commit": commit,
-            }
-            write_json(part_path(out_dir / "metrics.json"), metrics)
-            title = stopped_title(f"{simulator.name} on {cfg.scene.name}", stop_reason, by_guard)
-            _write_preview(out_dir, frames, state, title)
-        finally:  # whatever failed above, the folder holds one run's files
-            publish(out_dir, OUTPUTS, complete)
+    """The run of :func:`simulate` once everything is checked and ``out_dir`` is locked; its metrics."""
+    run = SimulationRun(out_dir, cfg, state, simulator, settings, guard)
+    metrics = run.roll(run.resume() if bool(cfg.resume) else run.start())
     log.info(
         "wrote %s: %d steps, %.1f ms/step median, density error mean %.4f",
         out_dir,
@@ -345,3 +242,192 @@ def _simulate_in(
 
         log.info("exported %s", export_rollout(out_dir / "rollout.h5", str(cfg.export), cfg))
     return metrics
+
+
+class SimulationRun:
+    """One ``task=simulate`` run in its locked ``out_dir``, from a fresh start or a stopped run's checkpoint.
+
+    Its parts: :meth:`start` (a fresh trajectory file) or :meth:`resume` (the stopped run's state, history,
+    record, frame metrics and trajectory), :meth:`roll` (the rollout with its hooks: :meth:`on_frame`, and the
+    checkpoint's ``on_step``), :meth:`write_outputs` (trajectory closed, ``metrics.json`` of
+    :meth:`metrics`, ``preview.png``, all published together whatever happened).
+    """
+
+    def __init__(
+        self,
+        out_dir: Path,
+        cfg: DictConfig,
+        state: ParticleState,
+        simulator: Simulator,
+        settings: SolverSettings,
+        guard: Guard,
+    ) -> None:
+        """The run's frame metrics, resume checkpoint and an empty timing record; no file is touched yet."""
+        self.out_dir, self.cfg, self.state, self.simulator, self.guard = out_dir, cfg, state, simulator, guard
+        self.write_every = write_every = int(cfg.write_every)
+        total_frames = int(cfg.steps) // write_every + 1 + (1 if int(cfg.steps) % write_every else 0)
+        self.frames = _FrameMetrics(state, settings, total_frames, colour_field(simulator))
+        self.checkpoint = RolloutCheckpoint(
+            out_dir, run_settings(cfg), simulator.history_length, float(cfg.checkpoint_every_s)
+        )
+        self.checkpoint.memory = getattr(simulator, "rollout_memory", None)
+        self.record: dict[str, Any] = {"step_seconds": [], "stage_seconds": {}, "info": {}}
+        self.wall_before = 0.0  # the wall time of the run before a resume
+        self.writer: TrajectoryWriter | None = None
+        self.start_time, self.commit = 0.0, ""  # set when the rollout starts
+
+    # ---------------------------------------------------------------------------------- start, resume
+    def start(self) -> ParticleState:
+        """A fresh run: the outputs begun, an old checkpoint removed, a new trajectory file; its start state.
+
+        A trajectory start's state already counts the steps before its frame.
+        """
+        out_dir, state, nf = self.out_dir, self.state, self.state.n_fluid
+        begin(out_dir, OUTPUTS)
+        self.checkpoint.remove()
+        cfg, name = self.cfg, self.simulator.name
+        attrs = run_attributes(state, cfg, name, str(cfg.scene.name), self.write_every)
+        boundary = slice(nf, None)
+        self.writer = TrajectoryWriter(
+            part_path(out_dir / "rollout.h5"),
+            nf,
+            state.pos[boundary].cpu().numpy(),
+            state.ptype[boundary].cpu().numpy(),
+            attrs,
+            dtype=stored_dtype(state),
+        )
+        return state
+
+    def resume(self) -> ParticleState:
+        """``resume=true``: the stopped run's state, to go on from where its checkpoint left it.
+
+        Restores the simulator's history (and a model's memory between steps), the checkpoint's window of
+        states, the timing record, the wall time so far and the frame metrics, and reopens the trajectory
+        after its stored frames (the constants stay the start's, see :mod:`lagfluid.simulate_resume`).
+
+        Raises:
+            RolloutError: no checkpoint or partial trajectory, other settings, or a run past ``steps``.
+        """
+        out_dir, cfg, state, simulator = self.out_dir, self.cfg, self.state, self.simulator
+        checkpoint = self.checkpoint
+        start_state, before, memory, written, extra = checkpoint.load(state)
+        if start_state.step - state.step > int(cfg.steps):
+            raise RolloutError(
+                f"resume=true: the run in {out_dir} is at step {start_state.step - state.step}, past "
+                f"steps={cfg.steps}"
+            )
+        if simulator.history_length:
+            simulator.reset(start_state, before)
+            if memory and hasattr(simulator, "restore_rollout_memory"):
+                simulator.restore_rollout_memory(start_state, memory)
+        for state_before in before:
+            checkpoint.on_step(state_before, start_state, None)
+        self.record, self.wall_before = extra["record"], float(extra["wall_time_s"])
+        self.frames.load_state_dict(extra["frames"], start_state)
+        self.writer = _reopen_partial_trajectory(out_dir, written)
+        begin(out_dir, OUTPUTS[1:])
+        log.info("resuming %s at step %d (%d frames stored)", out_dir, start_state.step, written)
+        return start_state
+
+    # ---------------------------------------------------------------------------------- the rollout
+    def on_frame(self, s: ParticleState) -> None:
+        """Hook of every stored frame: appended to the trajectory, measured, and checkpointed when due."""
+        nf = self.state.n_fluid
+        self.writer.append(
+            s.time,
+            s.pos[:nf].detach().cpu().numpy(),
+            s.vel[:nf].detach().cpu().numpy(),
+            s.pressure[:nf].detach().cpu().numpy(),
+        )
+        self.frames(s)
+        extra = {
+            "record": self.record,
+            "frames": self.frames.state_dict(),
+            "wall_time_s": self.wall_before + time.perf_counter() - self.start_time,
+        }
+        self.checkpoint.maybe_save(s, self.writer.frames, extra)
+
+    def roll(self, start_state: ParticleState) -> dict[str, Any]:
+        """The rollout from ``start_state`` to ``steps``, then the outputs whatever happened; the metrics.
+
+        A guard stop, a bug or Ctrl-C is raised again after the outputs say the run is incomplete and why;
+        Ctrl-C or SIGTERM first saves a checkpoint at the last frame (``resume=true`` continues from it).
+        """
+        cfg, state, checkpoint = self.cfg, self.state, self.checkpoint
+        self.commit = str(self.writer.group.attrs.get("git_commit", ""))
+        self.start_time = time.perf_counter()
+        stop_reason, complete, by_guard = "", True, False
+        try:
+            _, self.record = rollout(
+                self.simulator,
+                start_state,
+                int(cfg.steps) - (start_state.step - state.step),
+                guard=self.guard,
+                write_every=self.write_every,
+                on_frame=self.on_frame,
+                on_step=checkpoint.on_step,
+                progress=bool(cfg.progress),
+                reset=False,
+                step_offset=start_state.step - state.step,
+                record=self.record,
+            )
+        except BaseException as err:  # a guard stop, a bug, Ctrl-C: the files say the run is incomplete, why
+            by_guard = isinstance(err, RolloutError)  # the guard's stop; else Ctrl-C, SIGTERM or a bug
+            stop_reason = str(err) if by_guard else f"{type(err).__name__}: {err}"
+            complete = False
+            if isinstance(err, KeyboardInterrupt):  # Ctrl-C, SIGTERM: resume=true goes on from the last frame
+                checkpoint.save_latest()
+            self.record = getattr(err, "record", self.record)
+            raise
+        finally:
+            metrics = self.write_outputs(complete, stop_reason, by_guard)
+        return metrics
+
+    # ---------------------------------------------------------------------------------- the outputs
+    def write_outputs(self, complete: bool, stop_reason: str, by_guard: bool) -> dict[str, Any]:
+        """Close the trajectory, write ``metrics.json`` and ``preview.png``, publish the three; the metrics.
+
+        Whatever fails on the way, the folder holds one run's files (:func:`lagfluid.outputs.publish`).
+        """
+        cfg, simulator, out_dir = self.cfg, self.simulator, self.out_dir
+        try:
+            if complete:
+                self.checkpoint.remove()
+            self.writer.set_attributes(simulator.attributes())
+            self.writer.close(complete=complete, stop_reason=stop_reason)
+            metrics = self.metrics(complete, stop_reason)
+            write_json(part_path(out_dir / "metrics.json"), metrics)
+            title = stopped_title(f"{simulator.name} on {cfg.scene.name}", stop_reason, by_guard)
+            _write_preview(out_dir, self.frames, self.state, title)
+        finally:  # whatever failed above, the folder holds one run's files
+            publish(out_dir, OUTPUTS, complete)
+        return metrics
+
+    def metrics(self, complete: bool, stop_reason: str) -> dict[str, Any]:
+        """``metrics.json``: counts, timings, density error and divergence, the simulator, provenance."""
+        cfg, state, simulator, frames = self.cfg, self.state, self.simulator, self.frames
+        return {
+            "model": simulator.name,
+            "scene": str(cfg.scene.name),
+            "complete": complete,
+            "stop_reason": stop_reason,
+            "steps_requested": int(cfg.steps),
+            "steps": len(self.record["step_seconds"]),
+            "dt": state.params.dt,
+            "device": str(cfg.device),
+            "dtype": str(cfg.dtype),
+            "parameters": int(simulator.parameters),
+            "particles": {
+                "fluid": state.n_fluid,
+                "wall": int(state.wall_mask.sum()),
+                "dummy": int(state.dummy_mask.sum()),
+            },
+            **timing_summary(self.record),
+            "density_error": summarize(frames.density_errors),
+            "velocity_divergence_per_s": summarize(frames.divergences),
+            "frames_evaluated": len(frames.density_errors),
+            "wall_time_total_s": self.wall_before + time.perf_counter() - self.start_time,
+            "simulator": simulator.attributes(),
+            "version": lagfluid.__version__,
+            "git_commit": self.commit,
+        }

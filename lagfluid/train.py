@@ -65,7 +65,7 @@ from typing import Any
 
 import torch
 from omegaconf import DictConfig
-from torch import Tensor, nn
+from torch import Tensor
 from torch.utils.data import ConcatDataset
 from torch_geometric.loader import DataLoader
 
@@ -198,23 +198,6 @@ def _loss_fn(trainable: Trainable, name: str, delta: float) -> Any:
     return lambda pred, target: stage_loss(pred, target, name, delta)
 
 
-def _valid_loss(
-    trainable: Trainable, net: nn.Module, loader: DataLoader | None, batches: int, loss: Any
-) -> float:
-    if loader is None:
-        return float("nan")
-    net.eval()
-    losses = []
-    with torch.no_grad():
-        for k, batch in enumerate(loader):
-            if k >= batches:
-                break
-            pred, target = trainable.predict(net, batch.to(next(net.parameters()).device))
-            losses.append(float(loss(pred, target)))
-    net.train()
-    return sum(losses) / len(losses) if losses else float("nan")
-
-
 def _per_trainable(tcfg: DictConfig, key: str, name: str, default: Any = None) -> Any:
     """``train.<key>.<name>``: a per-trainable setting of the training profile."""
     section = tcfg.get(key) or {}
@@ -227,6 +210,405 @@ def _per_trainable(tcfg: DictConfig, key: str, name: str, default: Any = None) -
     return section[name]
 
 
+class Trainer:
+    """One trainable's training run in ``out_dir``: :func:`train_one` makes one and calls :meth:`run`.
+
+    Its parts, in the order :meth:`run` takes them:
+
+    * the run's identity and fingerprint (made at construction, :meth:`run_identity`), refused on resume by
+      :meth:`check_resume` when a checkpoint's differs;
+    * :meth:`build`: the network and its Adam optimizer, fine-tuning from ``train.init_from``
+      (:meth:`fine_tune_from`); :meth:`resume` from ``<name>.pt``; :meth:`fit_statistics`; :meth:`to_device`;
+    * :meth:`make_loaders`: the training batches, a function of (seed, iteration), and the validation batches;
+    * :meth:`loop` of :meth:`iteration` (one optimizer step), :meth:`validate`, :meth:`log_row` (the CSV row),
+      :meth:`save` (the atomic checkpoint) and the stop rules (:meth:`finished`, :meth:`out_of_time`);
+    * :meth:`open_log` and :meth:`log_end`: the loss log's start and the run's last log line.
+
+    Model-free: the trainable is reached through :class:`~lagfluid.models.trainable.Trainable` alone.
+    Attributes ``step`` (iterations done), ``elapsed`` (training seconds), ``stats`` (the network's
+    statistics, None until fitted) and ``window`` (the losses since the last logged row) are what a
+    checkpoint stores of the run besides the weights, optimizer and RNG.
+    """
+
+    def __init__(
+        self, cfg: DictConfig, trainable: Trainable, out_dir: Path, deadline: float | None = None
+    ) -> None:
+        """Read the run's settings and make its identity; nothing is built or read from ``out_dir`` yet.
+
+        Args:
+            cfg: the composed ``task=train`` config.
+            trainable: the network to train.
+            out_dir: the folder of ``<name>.pt`` and ``<name>_loss.csv``.
+            deadline: a :func:`time.monotonic` value (from ``train.max_seconds``), or None: no cap.
+
+        Raises:
+            ConfigError: a per-trainable setting missing, an unknown ``train.loss.<name>``.
+        """
+        self.cfg, self.tcfg, self.trainable, self.deadline = cfg, cfg.train, trainable, deadline
+        tcfg, kind = cfg.train, trainable.name
+        self.kind, self.options = kind, dict(trainable.options)
+        self.iterations = int(_per_trainable(tcfg, "iterations", kind))
+        self.batch_size = int(_per_trainable(tcfg, "batch_size", kind))
+        self.loss_name = str(_per_trainable(tcfg, "loss", kind, "mse"))
+        self.delta = float(tcfg.get("huber_delta", 1.0))
+        self.loss_fn = _loss_fn(trainable, self.loss_name, self.delta)
+        self.data_dir = Path(str(cfg.data.out_dir))
+        self.extra_dirs = [Path(str(d)) for d in tcfg.get("extra_data") or []]
+        self.milestones = [int(m) for m in tcfg.get("lr_milestones") or []]
+        self.gamma = float(tcfg.get("lr_gamma", 0.5))
+        self.adam_eps = float(tcfg.get("adam_eps") or 1e-8)
+        self.init_from = tcfg.get("init_from")
+        self.identity = self.run_identity()
+        self.fingerprint = _fingerprint(self.identity)
+        quantities = getattr(trainable, "range_quantities", tuple(UNITS))
+        # derived from the identity and the data: not part of the fingerprint
+        self.trained_range = training_range([self.data_dir, *self.extra_dirs], self.identity, quantities)
+        self.ckpt_path, self.csv_path = out_dir / f"{kind}.pt", out_dir / f"{kind}_loss.csv"
+        self.step, self.elapsed, self.stats, self.window = 0, 0.0, None, []
+
+    # ------------------------------------------------------------------------------- identity and resume
+    def run_identity(self) -> dict[str, Any]:
+        """What determines the trained weights (JSON-able): options, data, the trainable's identity, schedule.
+
+        The keys after ``iterations`` appear only when set off their defaults, so a checkpoint trained before
+        such an option existed keeps its fingerprint.
+        """
+        tcfg, data_dir = self.tcfg, self.data_dir
+        identity = {
+            "options": self.options,
+            "data": {"dir": str(data_dir.resolve()), "scenes": _train_scenes(data_dir)},
+            **self.trainable.identity(),
+            "batch_size": self.batch_size,
+            "lr": [float(tcfg.lr_start), float(tcfg.lr_end)],
+            "iterations": self.iterations,
+        }
+        if self.extra_dirs:
+            identity["extra_data"] = [
+                {"dir": str(d.resolve()), "scenes": _train_scenes(d)} for d in self.extra_dirs
+            ]
+        if self.loss_name != "mse":
+            identity["loss"] = {"name": self.loss_name, "delta": self.delta}
+        if self.milestones or self.adam_eps != 1e-8:
+            identity["schedule"] = {"milestones": self.milestones, "gamma": self.gamma, "eps": self.adam_eps}
+        if self.init_from:
+            identity["init_from"] = str(Path(str(self.init_from)).resolve())
+        return identity
+
+    def check_resume(self, meta: dict[str, Any]) -> None:
+        """Refuse to continue a checkpoint (its ``meta``) of another run: never silently mixed.
+
+        Raises:
+            ConfigError: its fingerprint is not this run's.
+        """
+        if meta.get("fingerprint") != self.fingerprint:
+            raise ConfigError(
+                f"{self.ckpt_path} was trained with other settings (network options, data, batch size, "
+                "schedule); use another out_dir or delete it to start afresh"
+            )
+
+    # -------------------------------------------------------------------------- network and optimizer
+    def build(self) -> None:
+        """The network (seeded by ``cfg.seed``) and its Adam optimizer, on the run's device set-up.
+
+        Sets ``device``, ``rank``/``ranks`` (torchrun, :mod:`lagfluid.distributed`), ``main`` (rank 0 writes
+        the files), ``net`` and ``optimizer``. A run without a checkpoint and with ``train.init_from`` starts
+        from those weights (:meth:`fine_tune_from`).
+        """
+        torch.manual_seed(int(self.cfg.seed))
+        self.device = distributed.init(run_device(self.cfg))
+        self.rank, self.ranks = distributed.world()
+        self.main = distributed.is_main()
+        self.net = self.trainable.build_network()
+        self.optimizer = torch.optim.Adam(
+            self.net.parameters(), lr=float(self.tcfg.lr_start), eps=self.adam_eps
+        )
+        if self.init_from and not self.ckpt_path.is_file():
+            self.fine_tune_from(self.init_from)
+
+    def fine_tune_from(self, init_from: str) -> None:
+        """Start from ``init_from/<name>.pt``'s weights and keep its statistics (they are not refitted).
+
+        Raises:
+            ConfigError: that network was built with other options.
+        """
+        kind, options = self.kind, self.options
+        init = read_checkpoint(Path(str(init_from)) / f"{kind}.pt", kind, model=self.trainable.model)
+        if dict(init["options"]) != options:
+            raise ConfigError(
+                f"train.init_from={init_from}: {kind}.pt has network options {init['options']}, not {options}"
+            )
+        self.net.load_state_dict(init["state_dict"])
+        self.stats = init.get("meta", {}).get("stats")
+        log.info("%s: starting from the weights and statistics of %s", kind, init_from)
+
+    def resume(self) -> dict[str, Any] | None:
+        """Continue from ``<name>.pt`` if there is one: weights, step, seconds, statistics, optimizer, RNG.
+
+        Returns:
+            The summary of a run that had already finished (skipped; nothing more is read), else None.
+
+        Raises:
+            ConfigError: the checkpoint is another run's (:meth:`check_resume`).
+        """
+        if not self.ckpt_path.is_file():
+            return None
+        ckpt = read_checkpoint(self.ckpt_path, self.kind, model=self.trainable.model)
+        meta = ckpt.get("meta", {})
+        self.check_resume(meta)
+        self.net.load_state_dict(ckpt["state_dict"])
+        self.step, self.elapsed = int(ckpt["step"]), float(meta.get("train_seconds", 0.0))
+        self.stats = meta.get("stats")
+        if self.finished():
+            log.info(
+                "%s: already trained (%d iterations) in %s, skipped", self.kind, self.step, self.ckpt_path
+            )
+            return {"kind": self.kind, "step": self.step, "skipped": True, "stopped": False, **meta}
+        self.optimizer.load_state_dict(ckpt["optimizer"])
+        torch.set_rng_state(ckpt["rng"])
+        # the next log row's losses before the stop
+        self.window = [float(v) for v in ckpt.get("loss_window", [])]
+        log.info("%s: resuming at iteration %d from %s", self.kind, self.step, self.ckpt_path)
+        return None
+
+    def fit_statistics(self) -> None:
+        """Fit the network's statistics from ``train.stat_samples`` training items, unless it has them."""
+        if self.stats is not None:
+            return
+        items, seed = self.train_items, int(self.cfg.seed)
+        n_stat = min(len(items), int(self.tcfg.stat_samples))
+        pick = torch.randperm(len(items), generator=torch.Generator().manual_seed(seed))[:n_stat]
+        self.stats = self.trainable.fit_statistics(self.net, [items[int(i)] for i in pick])
+        log.info("%s statistics from %d training samples: %s", self.kind, n_stat, self.stats)
+
+    def to_device(self) -> None:
+        """The network and a resumed optimizer's moments onto the run's device."""
+        self.net.to(self.device)
+        for state in self.optimizer.state.values():
+            for key, value in state.items():
+                if isinstance(value, Tensor) and key != "step":
+                    state[key] = value.to(self.device)
+
+    # -------------------------------------------------------------------------------------- loaders
+    def make_loaders(self) -> None:
+        """``train_items``, ``loader`` (endless training batches from ``step`` on) and ``valid_loader``.
+
+        The batch order is a function of (seed, iteration) alone (:class:`EpochBatches`), so a resumed run
+        continues it exactly; the loaders have their own generators, as a DataLoader iterator otherwise
+        draws its base seed from the global RNG, which the trainables' draws (restored from the checkpoint)
+        must not share. Under torchrun each rank takes its piece of the global batch (``pieces``).
+
+        Raises:
+            LagfluidError: no training items.
+        """
+        seed = int(self.cfg.seed)
+        train_items, valid_items = self.trainable.datasets(self.data_dir)
+        if self.extra_dirs:  # the union: each dataset's train split trains, data.out_dir's valid validates
+            train_items = ConcatDataset(
+                [train_items, *(self.trainable.datasets(d)[0] for d in self.extra_dirs)]
+            )
+        if len(train_items) == 0:
+            raise LagfluidError(f"no {self.kind} training samples in {self.data_dir}")
+        batches = EpochBatches(len(train_items), self.batch_size, seed, start=self.step)
+        self.pieces = distributed.RankBatches(batches, self.rank, self.ranks) if self.ranks > 1 else None
+        self.train_items = train_items
+        self.loader = DataLoader(
+            KeyedItems(train_items),
+            batch_sampler=self.pieces or batches,
+            generator=torch.Generator().manual_seed(seed),
+        )
+        self.valid_loader = (
+            DataLoader(
+                valid_items,
+                batch_size=self.batch_size,
+                shuffle=False,
+                generator=torch.Generator().manual_seed(seed),
+            )
+            if len(valid_items)
+            else None
+        )
+
+    # ------------------------------------------------------------------------------------ the loop
+    def iteration(self, batch: Any) -> float:
+        """One optimizer step on ``batch`` at iteration ``step``'s learning rate, which it returns.
+
+        The gradient and the logged loss are the global batch's under torchrun; the loss joins ``window``.
+
+        Raises:
+            LagfluidError: the loss is not finite (naming the iteration).
+        """
+        tcfg, step = self.tcfg, self.step
+        batch = batch.to(self.device)
+        lr = learning_rate(
+            step, self.iterations, float(tcfg.lr_start), float(tcfg.lr_end), self.milestones, self.gamma
+        )
+        for group in self.optimizer.param_groups:
+            group["lr"] = lr
+        pred, target = self.trainable.predict(self.net, batch)
+        rows = 0 if self.pieces is not None and self.pieces.padding else int(target.shape[0])
+        loss, batch_loss = distributed.global_mean(self.loss_fn(pred, target), rows)
+        if not torch.isfinite(batch_loss):
+            raise LagfluidError(
+                f"{self.kind}: loss is {float(batch_loss)} at iteration {step}; lower train.lr_start"
+            )
+        self.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        distributed.average_gradients(self.net)
+        self.optimizer.step()
+        self.step += 1
+        self.window.append(float(batch_loss))
+        return lr
+
+    def validate(self) -> float:
+        """Mean loss over the first ``train.valid_batches`` validation batches (NaN without a valid split)."""
+        net, loader = self.net, self.valid_loader
+        if loader is None:
+            return float("nan")
+        net.eval()
+        losses = []
+        with torch.no_grad():
+            for k, batch in enumerate(loader):
+                if k >= int(self.tcfg.valid_batches):
+                    break
+                pred, target = self.trainable.predict(net, batch.to(next(net.parameters()).device))
+                losses.append(float(self.loss_fn(pred, target)))
+        net.train()
+        return sum(losses) / len(losses) if losses else float("nan")
+
+    def finished(self) -> bool:
+        """Stop rule: all ``train.iterations.<name>`` iterations are done."""
+        return self.step >= self.iterations
+
+    def out_of_time(self, last: bool) -> bool:
+        """Stop rule ``train.max_seconds``: the deadline has passed, after any iteration but the ``last``."""
+        return not last and self.deadline is not None and time.monotonic() >= self.deadline
+
+    def loop(self) -> bool:
+        """Iterations from ``step`` on, each logged, validated and checkpointed when due; True: out of time.
+
+        ``elapsed`` counts the iterations' wall time, not the logging, validation or checkpointing.
+        """
+        tcfg, stopped = self.tcfg, False
+        t_last = time.perf_counter()
+        bar = progress_bar(
+            self.iterations, enabled=bool(self.cfg.progress), initial=self.step, desc=f"train {self.kind}"
+        )
+        try:
+            while not self.finished() and not stopped:
+                for batch in self.loader:
+                    if self.finished():
+                        break
+                    lr = self.iteration(batch)
+                    bar.update(1)
+                    now = time.perf_counter()
+                    self.elapsed += now - t_last
+                    t_last = now
+                    step, last = self.step, self.step == self.iterations
+                    if step % int(tcfg.log_every) == 0 or last:
+                        due = self.main and (step % int(tcfg.valid_every) == 0 or last)
+                        self.log_row(lr, self.validate() if due else float("nan"), bar)
+                        t_last = time.perf_counter()
+                    stopped = self.out_of_time(last)
+                    if step % int(tcfg.checkpoint_every) == 0 or last or stopped:
+                        self.save()
+                        t_last = time.perf_counter()
+                    if stopped:
+                        break
+        finally:
+            bar.close()
+            self.csv_file.close()
+        return stopped
+
+    # ------------------------------------------------------------------------------- checkpointing
+    def save(self) -> None:
+        """``<name>.pt`` at ``step`` (atomic rename; rank 0 writes it, every rank waits for it).
+
+        The network, options and ``meta`` (fingerprint, identity, statistics, training seconds, profile,
+        version, data folder, trained range), with the training state: optimizer, RNG and ``window``, the
+        losses since the last logged row, which a resume averages into its next row.
+        """
+        meta = {
+            "fingerprint": self.fingerprint,
+            "identity": json.dumps(self.identity, default=str),
+            "stats": self.stats,
+            "train_seconds": self.elapsed,
+            "profile": str(self.tcfg.name),
+            "version": lagfluid.__version__,
+            "data_dir": str(self.data_dir),
+            "range": self.trained_range,
+        }
+        payload = network_payload(
+            self.net, self.kind, self.options, self.step, meta, model=self.trainable.model
+        )
+        payload.update(
+            optimizer=self.optimizer.state_dict(), rng=torch.get_rng_state(), loss_window=list(self.window)
+        )
+        if self.main:
+            save_checkpoint(self.ckpt_path, payload)
+        distributed.barrier()  # no rank runs ahead of a checkpoint it may have to resume from
+
+    # ------------------------------------------------------------------------------------ logging
+    def open_log(self) -> None:
+        """``<name>_loss.csv`` as a run at ``step`` needs it (:func:`_start_csv`), open to append rows.
+
+        Rank 0 writes the log; the other ranks write to the null device.
+        """
+        if self.main:
+            _start_csv(self.csv_path, self.step)
+        self.csv_file = self.csv_path.open("a", newline="") if self.main else open(os.devnull, "w")
+        self.csv_writer = csv.writer(self.csv_file)
+
+    def log_row(self, lr: float, valid: float, bar: Any) -> None:
+        """The loss log's row at ``step`` (the mean of ``window``, then emptied) and the bar's."""
+        train_loss = sum(self.window) / len(self.window)
+        self.csv_writer.writerow(
+            [self.step, f"{lr:.6g}", f"{train_loss:.6g}", f"{valid:.6g}", f"{self.elapsed:.1f}"]
+        )
+        self.csv_file.flush()
+        bar.set_postfix(loss=f"{train_loss:.4g}", valid=f"{valid:.4g}")
+        self.window = []
+
+    def log_end(self, stopped: bool) -> None:
+        """The run's last log line: stopped by ``train.max_seconds`` (the same command continues), or done."""
+        if stopped:
+            log.info(
+                "%s: stopped by train.max_seconds at iteration %d of %d (checkpoint %s); the same command "
+                "continues",
+                self.kind,
+                self.step,
+                self.iterations,
+                self.ckpt_path,
+            )
+        else:
+            log.info("%s: %d iterations in %.0f s -> %s", self.kind, self.step, self.elapsed, self.ckpt_path)
+
+    # ------------------------------------------------------------------------------------ the run
+    def run(self) -> dict[str, Any]:
+        """Build, resume (or skip a finished run), load, fit the statistics, loop; the run's summary."""
+        self.build()
+        skipped = self.resume()
+        if skipped is not None:
+            return skipped
+        self.make_loaders()
+        self.fit_statistics()
+        self.to_device()
+        self.net.train()
+        self.open_log()
+        stopped = self.loop()
+        self.log_end(stopped)
+        return {
+            "kind": self.kind,
+            "step": self.step,
+            "train_seconds": self.elapsed,
+            "checkpoint": str(self.ckpt_path),
+            "stopped": stopped,
+        }
+
+
+def _train_scenes(data_dir: Path) -> Any:
+    """The train split's scenes of the dataset in ``data_dir`` (part of a run's identity)."""
+    return load_metadata(data_dir).get("splits", {}).get("train")
+
+
 def train_one(
     cfg: DictConfig, trainable: Trainable, out_dir: Path, deadline: float | None = None
 ) -> dict[str, Any]:
@@ -235,232 +617,7 @@ def train_one(
     With a ``deadline`` (a :func:`time.monotonic` value, from ``train.max_seconds``) the first iteration that
     ends after it is checkpointed and the training stops there: the summary's ``stopped`` is then True.
     """
-    tcfg, kind = cfg.train, trainable.name
-    options = dict(trainable.options)
-    iterations = int(_per_trainable(tcfg, "iterations", kind))
-    batch_size = int(_per_trainable(tcfg, "batch_size", kind))
-    loss_name = str(_per_trainable(tcfg, "loss", kind, "mse"))
-    delta = float(tcfg.get("huber_delta", 1.0))
-    loss_fn = _loss_fn(trainable, loss_name, delta)
-    data_dir = Path(str(cfg.data.out_dir))
-    extra_dirs = [Path(str(d)) for d in tcfg.get("extra_data") or []]
-    metadata = load_metadata(data_dir)
-    identity = {
-        "options": options,
-        "data": {"dir": str(data_dir.resolve()), "scenes": metadata.get("splits", {}).get("train")},
-        **trainable.identity(),
-        "batch_size": batch_size,
-        "lr": [float(tcfg.lr_start), float(tcfg.lr_end)],
-        "iterations": iterations,
-    }
-    if extra_dirs:  # only then, as below
-        identity["extra_data"] = [
-            {"dir": str(d.resolve()), "scenes": load_metadata(d).get("splits", {}).get("train")}
-            for d in extra_dirs
-        ]
-    if loss_name != "mse":  # only then: checkpoints trained before the option existed keep their fingerprint
-        identity["loss"] = {"name": loss_name, "delta": delta}
-    milestones = [int(m) for m in tcfg.get("lr_milestones") or []]
-    adam_eps = float(tcfg.get("adam_eps") or 1e-8)
-    if milestones or adam_eps != 1e-8:  # only then, likewise
-        identity["schedule"] = {
-            "milestones": milestones,
-            "gamma": float(tcfg.get("lr_gamma", 0.5)),
-            "eps": adam_eps,
-        }
-    init_from = tcfg.get("init_from")
-    if init_from:  # only then, likewise
-        identity["init_from"] = str(Path(str(init_from)).resolve())
-    fingerprint = _fingerprint(identity)
-    quantities = getattr(trainable, "range_quantities", tuple(UNITS))
-    trained_range = training_range([data_dir, *extra_dirs], identity, quantities)  # derived: no fingerprint
-    ckpt_path, csv_path = out_dir / f"{kind}.pt", out_dir / f"{kind}_loss.csv"
-
-    torch.manual_seed(int(cfg.seed))
-    device = distributed.init(run_device(cfg))
-    rank, ranks = distributed.world()
-    main = distributed.is_main()
-    net = trainable.build_network()
-    optimizer = torch.optim.Adam(net.parameters(), lr=float(tcfg.lr_start), eps=adam_eps)
-    start_step, elapsed, stats, window = 0, 0.0, None, []
-    if init_from and not ckpt_path.is_file():  # fine-tuning: start from trained weights and their statistics
-        init = read_checkpoint(Path(str(init_from)) / f"{kind}.pt", kind, model=trainable.model)
-        if dict(init["options"]) != options:
-            raise ConfigError(
-                f"train.init_from={init_from}: {kind}.pt has network options {init['options']}, not {options}"
-            )
-        net.load_state_dict(init["state_dict"])
-        stats = init.get("meta", {}).get("stats")
-        log.info("%s: starting from the weights and statistics of %s", kind, init_from)
-    if ckpt_path.is_file():
-        ckpt = read_checkpoint(ckpt_path, kind, model=trainable.model)
-        meta = ckpt.get("meta", {})
-        if meta.get("fingerprint") != fingerprint:
-            raise ConfigError(
-                f"{ckpt_path} was trained with other settings (network options, data, batch size, schedule); "
-                "use another out_dir or delete it to start afresh"
-            )
-        net.load_state_dict(ckpt["state_dict"])
-        start_step, elapsed, stats = (
-            int(ckpt["step"]),
-            float(meta.get("train_seconds", 0.0)),
-            meta.get("stats"),
-        )
-        if start_step >= iterations:
-            log.info("%s: already trained (%d iterations) in %s, skipped", kind, start_step, ckpt_path)
-            return {"kind": kind, "step": start_step, "skipped": True, "stopped": False, **meta}
-        optimizer.load_state_dict(ckpt["optimizer"])
-        torch.set_rng_state(ckpt["rng"])
-        window = [float(v) for v in ckpt.get("loss_window", [])]  # the next log row's losses before the stop
-        log.info("%s: resuming at iteration %d from %s", kind, start_step, ckpt_path)
-
-    train_items, valid_items = trainable.datasets(data_dir)
-    if extra_dirs:  # the union: each dataset's train split trains, data.out_dir's valid split validates
-        train_items = ConcatDataset([train_items, *(trainable.datasets(d)[0] for d in extra_dirs)])
-    if len(train_items) == 0:
-        raise LagfluidError(f"no {kind} training samples in {data_dir}")
-    # the batch order is a function of (seed, iteration) alone: a resumed run continues it exactly
-    # own generators: a DataLoader iterator draws its base seed from the global RNG otherwise, which the
-    # trainables' noise and pushforward draws (restored from the checkpoint) must not share
-    batches = EpochBatches(len(train_items), batch_size, int(cfg.seed), start=start_step)
-    # under torchrun each rank takes its piece of the global batch (lagfluid.distributed)
-    pieces = distributed.RankBatches(batches, rank, ranks) if ranks > 1 else None
-    loader = DataLoader(
-        KeyedItems(train_items),
-        batch_sampler=pieces or batches,
-        generator=torch.Generator().manual_seed(int(cfg.seed)),
-    )
-    valid_loader = (
-        DataLoader(
-            valid_items,
-            batch_size=batch_size,
-            shuffle=False,
-            generator=torch.Generator().manual_seed(int(cfg.seed)),
-        )
-        if len(valid_items)
-        else None
-    )
-
-    if stats is None:
-        n_stat = min(len(train_items), int(tcfg.stat_samples))
-        pick = torch.randperm(len(train_items), generator=torch.Generator().manual_seed(int(cfg.seed)))[
-            :n_stat
-        ]
-        stats = trainable.fit_statistics(net, [train_items[int(i)] for i in pick])
-        log.info("%s statistics from %d training samples: %s", kind, n_stat, stats)
-    net.to(device)
-    for state in optimizer.state.values():  # a resumed optimizer's moments follow the weights
-        for key, value in state.items():
-            if isinstance(value, Tensor) and key != "step":
-                state[key] = value.to(device)
-
-    net.train()
-    if main:
-        _start_csv(csv_path, start_step)
-    csv_file = csv_path.open("a", newline="") if main else open(os.devnull, "w")  # rank 0 writes the log
-    writer = csv.writer(csv_file)
-
-    def save(step: int) -> None:
-        meta = {
-            "fingerprint": fingerprint,
-            "identity": json.dumps(identity, default=str),
-            "stats": stats,
-            "train_seconds": elapsed,
-            "profile": str(tcfg.name),
-            "version": lagfluid.__version__,
-            "data_dir": str(data_dir),
-            "range": trained_range,
-        }
-        payload = network_payload(net, kind, options, step, meta, model=trainable.model)
-        # training state, as the optimizer's: the losses since the last logged row, which a resume averages
-        payload.update(optimizer=optimizer.state_dict(), rng=torch.get_rng_state(), loss_window=list(window))
-        if main:
-            save_checkpoint(ckpt_path, payload)
-        distributed.barrier()  # no rank runs ahead of a checkpoint it may have to resume from
-
-    step, t_last, stopped = start_step, time.perf_counter(), False
-    bar = progress_bar(iterations, enabled=bool(cfg.progress), initial=start_step, desc=f"train {kind}")
-    try:
-        while step < iterations and not stopped:
-            for batch in loader:
-                if step >= iterations:
-                    break
-                batch = batch.to(device)
-                lr = learning_rate(
-                    step,
-                    iterations,
-                    float(tcfg.lr_start),
-                    float(tcfg.lr_end),
-                    milestones,
-                    float(tcfg.get("lr_gamma", 0.5)),
-                )
-                for group in optimizer.param_groups:
-                    group["lr"] = lr
-                pred, target = trainable.predict(net, batch)
-                # torchrun: the gradient and the logged loss of the global batch (lagfluid.distributed)
-                rows = 0 if pieces is not None and pieces.padding else int(target.shape[0])
-                loss, batch_loss = distributed.global_mean(loss_fn(pred, target), rows)
-                if not torch.isfinite(batch_loss):
-                    raise LagfluidError(
-                        f"{kind}: loss is {float(batch_loss)} at iteration {step}; lower train.lr_start"
-                    )
-                optimizer.zero_grad(set_to_none=True)
-                loss.backward()
-                distributed.average_gradients(net)
-                optimizer.step()
-                step += 1
-                window.append(float(batch_loss))
-                bar.update(1)
-                now = time.perf_counter()
-                elapsed += now - t_last
-                t_last = now
-                last = step == iterations
-                if step % int(tcfg.log_every) == 0 or last:
-                    valid = (
-                        _valid_loss(trainable, net, valid_loader, int(tcfg.valid_batches), loss_fn)
-                        if main and (step % int(tcfg.valid_every) == 0 or last)
-                        else float("nan")
-                    )
-                    writer.writerow(
-                        [
-                            step,
-                            f"{lr:.6g}",
-                            f"{sum(window) / len(window):.6g}",
-                            f"{valid:.6g}",
-                            f"{elapsed:.1f}",
-                        ]
-                    )
-                    csv_file.flush()
-                    bar.set_postfix(loss=f"{sum(window) / len(window):.4g}", valid=f"{valid:.4g}")
-                    window = []
-                    t_last = time.perf_counter()
-                stopped = not last and deadline is not None and time.monotonic() >= deadline
-                if step % int(tcfg.checkpoint_every) == 0 or last or stopped:
-                    save(step)
-                    t_last = time.perf_counter()
-                if stopped:
-                    break
-    finally:
-        bar.close()
-        csv_file.close()
-    if stopped:
-        log.info(
-            "%s: stopped by train.max_seconds at iteration %d of %d (checkpoint %s); the same command "
-            "continues",
-            kind,
-            step,
-            iterations,
-            ckpt_path,
-        )
-    else:
-        log.info("%s: %d iterations in %.0f s -> %s", kind, step, elapsed, ckpt_path)
-    return {
-        "kind": kind,
-        "step": step,
-        "train_seconds": elapsed,
-        "checkpoint": str(ckpt_path),
-        "stopped": stopped,
-    }
+    return Trainer(cfg, trainable, out_dir, deadline).run()
 
 
 def check_export_to(export_to: str | os.PathLike) -> None:

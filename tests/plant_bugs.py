@@ -40,14 +40,14 @@ PLANTS = [
     (
         "training resume does not restore the weights",
         "lagfluid/train.py",
-        '        net.load_state_dict(ckpt["state_dict"])',
+        '        self.net.load_state_dict(ckpt["state_dict"])',
         "        pass  # planted",
         "tests/test_fgn.py::test_a_resumed_training_ends_with_the_uninterrupted_runs_weights",
     ),
     (
         "training resume does not restore the Adam state",
         "lagfluid/train.py",
-        '        optimizer.load_state_dict(ckpt["optimizer"])',
+        '        self.optimizer.load_state_dict(ckpt["optimizer"])',
         "        pass  # planted",
         "tests/test_fgn.py::test_a_resumed_training_ends_with_the_uninterrupted_runs_weights",
     ),
@@ -239,8 +239,8 @@ PLANTS = [
     (
         "a training rerun without a checkpoint appends to the old loss log",
         "lagfluid/train.py",
-        "    if main:\n        _start_csv(csv_path, start_step)",
-        "    if main and start_step > 0:\n        _start_csv(csv_path, start_step)",
+        "        if self.main:\n            _start_csv(self.csv_path, self.step)",
+        "        if self.main and self.step > 0:\n            _start_csv(self.csv_path, self.step)",
         "tests/test_fgn.py::test_a_resumed_trainings_loss_log_is_the_uninterrupted_runs[before-the-first-checkpoint]",
     ),
     (
@@ -481,8 +481,8 @@ PLANTS = [
     (
         "train.max_seconds ignored",
         "lagfluid/train.py",
-        "stopped = not last and deadline is not None and time.monotonic() >= deadline",
-        "stopped = False",
+        "return not last and self.deadline is not None and time.monotonic() >= self.deadline",
+        "return False",
         "tests/test_train.py::test_max_seconds_stops_after_a_checkpoint_and_the_same_command_continues_exactly",
     ),
     (
@@ -873,6 +873,49 @@ PLANTS = [
         'if [ -n "$(ls -A "$out")" ]; then',
         "if false; then",
         "tests/test_gpu_train.py::test_a_day_into_an_out_that_holds_files_is_refused_untouched",
+    ),
+    # issue 36, item 4: the Trainer's parts on their own
+    (
+        "trainer: the identity always lists the schedule (every older checkpoint's fingerprint changes)",
+        "lagfluid/train.py",
+        "        if self.milestones or self.adam_eps != 1e-8:",
+        "        if True:",
+        "tests/test_train.py::test_the_trainers_identity_holds_the_optional_settings_only_when_set",
+    ),
+    (
+        "trainer: a checkpoint of other settings is resumed",
+        "lagfluid/train.py",
+        'if meta.get("fingerprint") != self.fingerprint:',
+        "if False:",
+        "tests/test_train.py::test_a_checkpoint_of_other_settings_is_refused_in_one_line_and_kept",
+    ),
+    (
+        "trainer: train.max_seconds stops a run on its last iteration too",
+        "lagfluid/train.py",
+        "return not last and self.deadline is not None and time.monotonic() >= self.deadline",
+        "return self.deadline is not None and time.monotonic() >= self.deadline",
+        "tests/test_train.py::test_the_stop_rules_are_all_iterations_and_max_seconds_after_any_iteration_but_the_last",
+    ),
+    (
+        "trainer: an iteration steps at the next iteration's learning rate",
+        "lagfluid/train.py",
+        "step, self.iterations, float(tcfg.lr_start)",
+        "step + 1, self.iterations, float(tcfg.lr_start)",
+        "tests/test_train.py::test_one_iteration_is_one_adam_step_at_its_rate_logged_and_saved_for_the_resume",
+    ),
+    (
+        "trainer: a logged row's losses are averaged into the next row too",
+        "lagfluid/train.py",
+        "        self.window = []\n",
+        "        pass  # planted\n",
+        "tests/test_train.py::test_one_iteration_is_one_adam_step_at_its_rate_logged_and_saved_for_the_resume",
+    ),
+    (
+        "trainer: a checkpoint leaves out the losses since the last logged row",
+        "lagfluid/train.py",
+        "loss_window=list(self.window)",
+        "loss_window=[]",
+        "tests/test_train.py::test_one_iteration_is_one_adam_step_at_its_rate_logged_and_saved_for_the_resume",
     ),
 ]
 

@@ -1,6 +1,10 @@
 """The generic trainer and the trainables registry: nothing in lagfluid/train.py names a model (seconds)."""
 
 import csv
+import hashlib
+import json
+import re
+import time
 
 import pytest
 import torch
@@ -9,13 +13,15 @@ from torch import nn
 from torch_geometric.data import Data
 
 from lagfluid import registry
+from lagfluid.data.datasets import load_metadata
 from lagfluid.errors import ConfigError
 from lagfluid.generate import generate
 from lagfluid.models.checkpoint import read_checkpoint
 from lagfluid.models.trainable import Trainable
+from lagfluid.progress import progress_bar
 from lagfluid.registry import UnknownNameError, get_trainables, trainable_models
 from lagfluid.run import CONF_DIR
-from lagfluid.train import train
+from lagfluid.train import CSV_HEADER, Trainer, train
 
 
 def _compose(*overrides):
@@ -305,3 +311,103 @@ def test_max_seconds_with_onpolicy_rounds_is_refused_before_any_training(tiny_da
     with pytest.raises(ConfigError, match=r"train.max_seconds=60 caps the one-step training, not .*rounds=1"):
         train(cfg)
     assert not any(tmp_path.iterdir())
+
+
+# ------------------------------------------------------------------- the Trainer's parts on their own
+def _line(tiny_data, out_dir, *overrides):
+    """A config training the toy ``line`` 4 iterations in batches of 2, lr 0.1 -> 0.05."""
+    return _compose(
+        "task=train", "model=fgn", "data=tiny", f"data.out_dir={tiny_data}", f"out_dir={out_dir}",
+        "progress=false", "+train.iterations.line=4", "+train.batch_size.line=2", "train.lr_start=0.1",
+        "train.lr_end=0.05", *overrides,
+    )  # fmt: skip
+
+
+def test_the_trainers_identity_holds_the_optional_settings_only_when_set(tiny_data, tmp_path):
+    """Old checkpoints keep their fingerprint: a setting at its default adds no key to the identity."""
+    scenes = load_metadata(tiny_data)["splits"]["train"]
+    expected = {
+        "options": {"width": 3},
+        "data": {"dir": str(tiny_data.resolve()), "scenes": scenes},
+        "batch_size": 2,
+        "lr": [0.1, 0.05],
+        "iterations": 4,
+    }
+    plain = Trainer(_line(tiny_data, tmp_path), LinearFit("line"), tmp_path)
+    assert plain.identity == expected and list(plain.identity) == list(expected)
+    digest = hashlib.sha256(json.dumps(expected, sort_keys=True).encode()).hexdigest()[:16]
+    assert plain.fingerprint == digest
+    options = ("+train.loss.line=huber", "+train.lr_milestones=[2]", f"train.init_from={tmp_path}")
+    tuned = Trainer(_line(tiny_data, tmp_path, *options), LinearFit("line"), tmp_path)
+    assert tuned.identity == {
+        **expected,
+        "loss": {"name": "huber", "delta": 1.0},
+        "schedule": {"milestones": [2], "gamma": 0.5, "eps": 1e-8},
+        "init_from": str(tmp_path.resolve()),
+    }
+
+
+def test_a_checkpoint_of_other_settings_is_refused_in_one_line_and_kept(tiny_data, tmp_path, monkeypatch):
+    monkeypatch.setitem(registry._REGISTERED_TRAINABLES, "fgn", lambda cfg: {"line": LinearFit("line")})
+    train(_line(tiny_data, tmp_path))
+    ckpt = tmp_path / "line.pt"
+    saved, meta = ckpt.read_bytes(), read_checkpoint(ckpt)["meta"]
+    Trainer(_line(tiny_data, tmp_path), LinearFit("line"), tmp_path).check_resume(meta)  # the same run's
+    other = _line(tiny_data, tmp_path, "train.batch_size.line=3")
+    message = (
+        f"^{re.escape(str(ckpt))} was trained with other settings \\(network options, data, batch size, "
+        "schedule\\); use another out_dir or delete it to start afresh$"
+    )
+    with pytest.raises(ConfigError, match=message):
+        Trainer(other, LinearFit("line"), tmp_path).check_resume(meta)
+    with pytest.raises(ConfigError, match=message):  # a LagfluidError: one line from the command line
+        train(other)
+    assert ckpt.read_bytes() == saved
+
+
+def test_the_stop_rules_are_all_iterations_and_max_seconds_after_any_iteration_but_the_last(
+    tiny_data, tmp_path
+):
+    cfg, now = _line(tiny_data, tmp_path), time.monotonic()
+    past, future, uncapped = (
+        Trainer(cfg, LinearFit("line"), tmp_path, d) for d in (now - 1, now + 3600, None)
+    )
+    assert past.out_of_time(last=False) and not past.out_of_time(last=True)  # the last one ends the run
+    assert not future.out_of_time(last=False) and not uncapped.out_of_time(last=False)
+    assert [(setattr(past, "step", k), past.finished())[1] for k in range(6)] == [False] * 4 + [True] * 2
+
+
+def test_one_iteration_is_one_adam_step_at_its_rate_logged_and_saved_for_the_resume(tiny_data, tmp_path):
+    trainer = Trainer(_line(tiny_data, tmp_path), LinearFit("line"), tmp_path)
+    trainer.build()
+    assert trainer.resume() is None and trainer.step == 0
+    trainer.make_loaders()
+    trainer.fit_statistics()
+    trainer.to_device()
+    trainer.open_log()
+    assert trainer.stats == {"items": 6}  # the 6 training items of LinearFit
+    batch = next(iter(trainer.loader))
+    w, b = trainer.net.weight.detach().clone(), trainer.net.bias.detach().clone()
+    residual = batch.x @ w.T + b - batch.y  # (N, 1)
+    loss, grad = float(torch.mean(residual**2)), 2 * torch.mean(residual * batch.x, dim=0, keepdim=True)
+    lr = trainer.iteration(batch)
+    assert lr == 0.1 and trainer.step == 1 and trainer.window == [pytest.approx(loss, rel=1e-6)]
+    # Adam's first step moves each weight by lr against the sign of its gradient (m / sqrt(v) = g / |g|)
+    torch.testing.assert_close(trainer.net.weight.detach(), w - lr * torch.sign(grad), atol=1e-6, rtol=0)
+
+    trainer.log_row(lr, 0.25, progress_bar(4, enabled=False))
+    trainer.csv_file.close()
+    assert trainer.window == []
+    with trainer.csv_path.open() as f:
+        rows = list(csv.reader(f))
+    assert rows == [list(CSV_HEADER), ["1", "0.1", f"{loss:.6g}", "0.25", f"{trainer.elapsed:.1f}"]]
+
+    trainer.window = [0.5]  # a loss since the last logged row
+    trainer.save()
+    again = Trainer(_line(tiny_data, tmp_path), LinearFit("line"), tmp_path)
+    again.build()
+    assert again.resume() is None
+    assert (again.step, again.window, again.stats, again.elapsed) == (1, [0.5], {"items": 6}, trainer.elapsed)
+    assert torch.equal(again.net.weight, trainer.net.weight) and torch.equal(again.net.bias, trainer.net.bias)
+    moments, saved = again.optimizer.state_dict()["state"], trainer.optimizer.state_dict()["state"]
+    assert all(torch.equal(moments[k]["exp_avg_sq"], saved[k]["exp_avg_sq"]) for k in saved)
