@@ -181,10 +181,10 @@ def _write_preview(out_dir: Path, frames: _FrameMetrics, state: ParticleState, t
 
 def simulate(cfg: DictConfig) -> dict[str, Any]:
     """``task=simulate``: roll out ``cfg.model`` on ``cfg.scene`` and write the three output files."""
-    state, simulator, settings, guard = _set_up(cfg)
     out_dir = Path(cfg.out_dir)
+    run = SimulationRun(out_dir, cfg, *_set_up(cfg))  # touches no file yet
     with hold_outputs(out_dir, "simulate"):  # a second run into out_dir is refused, before it touches it
-        return _simulate_in(out_dir, cfg, state, simulator, settings, guard)
+        return _simulate_in(run)
 
 
 def _set_up(cfg: DictConfig) -> tuple[ParticleState, Simulator, SolverSettings, Guard]:
@@ -219,16 +219,9 @@ def _set_up(cfg: DictConfig) -> tuple[ParticleState, Simulator, SolverSettings, 
     return state, simulator, settings, guard
 
 
-def _simulate_in(
-    out_dir: Path,
-    cfg: DictConfig,
-    state: ParticleState,
-    simulator: Simulator,
-    settings: SolverSettings,
-    guard: Guard,
-) -> dict[str, Any]:
+def _simulate_in(run: SimulationRun) -> dict[str, Any]:
     """The run of :func:`simulate` once everything is checked and ``out_dir`` is locked; its metrics."""
-    run = SimulationRun(out_dir, cfg, state, simulator, settings, guard)
+    out_dir, cfg = run.out_dir, run.cfg
     metrics = run.roll(run.resume() if bool(cfg.resume) else run.start())
     log.info(
         "wrote %s: %d steps, %.1f ms/step median, density error mean %.4f",
