@@ -17,6 +17,11 @@ the dam, GNS drives fluid into a wall it was never shown that close, and the gua
 3. with ``train.dagger.dam_steps`` > 0, that round's rollout of the dam, complete or where the guard
    stopped it (:mod:`lagfluid.dagger_eval`, also for round 0), in ``<out_dir>/dagger/dam.csv``.
 
+**The policy with exact stages after it.** With ``model.exact_after`` on, the rounds roll out the model
+followed by those stages (the hybrid row the tables show, e.g. ``cconv_exact``) and label the hybrid's
+states; the network trained is the model's own (the stages have no weights), so that it learns MPS's step
+from the states the hybrid visits, and each round's dam rollout is the hybrid's.
+
 Everything resumes: finished scenes are skipped, a fine-tune continues from its checkpoint (a finished one is
 skipped), a dam rollout already measured for the same weights is not run again. The regenerated scenes must
 be the dataset's: the command gives the settings it was generated with (``scene=random``).
@@ -35,14 +40,23 @@ from omegaconf import DictConfig, open_dict
 
 from lagfluid.dagger_eval import dam_result, scene_config, write_summary
 from lagfluid.errors import ConfigError
-from lagfluid.models.exact_after import ExactAfterOptions
 from lagfluid.onpolicy_rounds import dataset_generate_config, generate_scenes, round_dir
 from lagfluid.registry import get_trainables
 
 log = logging.getLogger(__name__)
 
 FOLDER = "dagger"
-KEYS = ("rounds", "every", "iterations", "lr_start", "jobs", "start_from", "dam_steps", "dam_scene")
+KEYS = (
+    "rounds",
+    "every",
+    "horizon",
+    "iterations",
+    "lr_start",
+    "jobs",
+    "start_from",
+    "dam_steps",
+    "dam_scene",
+)
 
 
 @dataclass(frozen=True)
@@ -52,6 +66,7 @@ class DAgger:
     Attributes:
         rounds: R, the number of rounds (0: none).
         every: label every k-th frame the model made (1: each).
+        horizon: model steps of MPS in each label (1; CConv, which trains on two-step unrolls: 2).
         iterations: fine-tuning iterations per round and trainable.
         lr_start: learning rate of each round's first iteration (decays to ``train.lr_end``).
         jobs: scenes rolled out at once, each in its own one-thread process.
@@ -62,6 +77,7 @@ class DAgger:
 
     rounds: int
     every: int = 1
+    horizon: int = 1
     iterations: int = 1
     lr_start: float = 1e-4
     jobs: int = 1
@@ -81,7 +97,7 @@ class DAgger:
         unknown = sorted(set(section) - set(KEYS))
         if unknown:
             raise ConfigError(f"train.dagger has no key {unknown[0]!r}; keys: {', '.join(KEYS)}")
-        numbers = {"rounds": 0, "every": 1, "iterations": 1, "jobs": 1, "dam_steps": 0}
+        numbers = {"rounds": 0, "every": 1, "horizon": 1, "iterations": 1, "jobs": 1, "dam_steps": 0}
         values = {key: section.get(key, cls.__dataclass_fields__[key].default) for key in numbers}
         values["rounds"] = section.get("rounds") or 0
         for key, least in numbers.items():
@@ -92,11 +108,6 @@ class DAgger:
         lr_start = cfg.train.lr_start if lr_start is None else lr_start
         if isinstance(lr_start, bool) or not isinstance(lr_start, (int, float)) or not lr_start > 0:
             raise ConfigError(f"train.dagger.lr_start must be a number > 0, got {lr_start!r}")
-        if values["rounds"] and ExactAfterOptions.from_config(cfg.model.get("exact_after")).enabled:
-            raise ConfigError(
-                "train.dagger rolls out and trains the plain model: set model.exact_after.collision=false "
-                "and model.exact_after.pressure=false"
-            )
         stride = cfg.train.get("frame_stride", 1)
         if values["rounds"] and stride != 1:  # else refused only at round 1's fine-tune, after its rollouts
             raise ConfigError(
@@ -123,16 +134,20 @@ class DAgger:
         return round_dir(out_dir, k, FOLDER)
 
 
-def expert_data_config(cfg: DictConfig, policy: Path, data_dir: Path, every: int) -> DictConfig:
+def expert_data_config(
+    cfg: DictConfig, policy: Path, data_dir: Path, every: int, horizon: int = 1
+) -> DictConfig:
     """``cfg`` as the generation of the DAgger dataset ``data_dir``: the dataset's scenes, ``policy``'s model.
 
     The dataset's own generation settings (:func:`~lagfluid.onpolicy_rounds.dataset_generate_config`), moved
-    by the model with the weights in ``policy``, labelled every ``every``-th frame.
+    by the model with the weights in ``policy`` (and ``cfg.model.exact_after``'s stages after each step, if
+    on), labelled every ``every``-th frame by ``horizon`` model steps of MPS.
     """
     gen = dataset_generate_config(cfg, None, data_dir)
     with open_dict(gen):
         gen.data.policy = None  # the dataset's scenes as the solver made them; the model is the policy here
         gen.data.expert_every = every
+        gen.data.expert_horizon = horizon
         gen.model.weights = str(policy)
     return gen
 
@@ -167,8 +182,7 @@ def run_dagger(
         the last round's folder (a complete ``model.weights``).
 
     Raises:
-        ConfigError: a network of the model missing from the start weights, a split-step model, or exact
-            stages after the model.
+        ConfigError: a network of the model missing from the start weights, or a split-step model.
     """
     from lagfluid.generate.expert import end_to_end_simulator, generate_expert, train_scenes
     from lagfluid.generate.spec import DataSpec
@@ -191,7 +205,7 @@ def run_dagger(
     for k in range(1, settings.rounds + 1):
         previous, here = settings.weights(out_dir, k - 1), round_dir(out_dir, k, FOLDER)
         log.info("DAgger round %d of %d: %s's model rolls out the scenes", k, settings.rounds, previous)
-        gen = expert_data_config(cfg, previous, here / "data", settings.every)
+        gen = expert_data_config(cfg, previous, here / "data", settings.every, settings.horizon)
         generate_scenes(gen, settings.jobs, generate_expert, train_scenes(DataSpec.from_config(gen)))
         tuned = copy.deepcopy(cfg)
         with open_dict(tuned):

@@ -45,6 +45,9 @@ Training (entry point ``lagfluid.trainables``: ``factory(cfg) -> {name: Trainabl
     ``StepWindows``          a dataset of one-step pairs of the generated trajectories
     ``TrajectoryWindows``    a dataset of history windows (GNS-style) of the generated trajectories
     ``trajectory_windows``   :class:`TrajectoryWindows` of a split, expert datasets (DAgger) included
+    ``step_windows``         :class:`StepWindows` of a split (a state and its next K solver steps), DAgger
+                             datasets included (``ExpertStepWindows``: the model's states, MPS's steps)
+    ``ExpertStepWindows``    those windows of a DAgger dataset
     ``HorizontalSymmetry``   one of a tank's 8 horizontal symmetries (x/y reflections, x/y swap): augmentation
 
 Building blocks of a network and its step
@@ -82,7 +85,7 @@ from __future__ import annotations
 
 from lagfluid import pair_kernels
 from lagfluid.data.datasets import StepWindows, TrajectoryWindows
-from lagfluid.data.expert_windows import trajectory_windows
+from lagfluid.data.expert_windows import ExpertStepWindows, step_windows, trajectory_windows
 from lagfluid.data.symmetry import HorizontalSymmetry
 from lagfluid.device_constants import device_constant
 from lagfluid.errors import ConfigError, LagfluidError, RolloutError, SceneError
@@ -120,6 +123,7 @@ __all__ = [
     "ExactAfter",
     "ExactAfterOptions",
     "ExactPressure",
+    "ExpertStepWindows",
     "Guard",
     "HorizontalSymmetry",
     "LagfluidError",
@@ -161,6 +165,7 @@ __all__ = [
     "save_checkpoint",
     "scene_params",
     "semi_implicit_euler",
+    "step_windows",
     "trajectory_windows",
     "with_exact_after",
 ]

@@ -268,7 +268,7 @@ def test_where_mps_itself_fails_from_the_models_state_the_scene_stops_there(two_
             "train.dagger.dam_scene=dams",
             r"train.dagger.dam_scene=dams: no such scene; available: .*dam_small",
         ),
-        ("model.exact_after.collision=true", r"train.dagger rolls out and trains the plain model"),
+        ("train.dagger.horizon=0", r"train.dagger.horizon must be a whole number >= 1, got 0$"),
         ("train.frame_stride=2", r"train.frame_stride must be 1 with rounds, got 2$"),
         ("scene=dam", r"train.dagger.rounds regenerates .*\(scene=dam; the dataset's is scene=random\)"),
     ],

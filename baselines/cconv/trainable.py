@@ -43,7 +43,14 @@ from omegaconf import OmegaConf
 from torch import Tensor, nn
 from torch_geometric.data import Batch, Data
 
-from lagfluid.zoo import ConfigError, LagfluidError, ParticleType, StepWindows, radius_graph
+from lagfluid.zoo import (
+    ConfigError,
+    LagfluidError,
+    ParticleType,
+    StepWindows,
+    radius_graph,
+    step_windows,
+)
 
 from .boundary import SURFACE_RADIUS, surface_points
 from .network import CConvNet
@@ -116,7 +123,11 @@ class CConvTrainable:
 
     # ------------------------------------------------------------------------ Trainable
     def datasets(self, data_dir: Path) -> tuple[Any, Any]:
-        """Windows of a state and its next two solver steps (or frames), train and valid splits."""
+        """Windows of a state and its next two solver steps (or frames), train and valid splits.
+
+        A DAgger dataset (``train.dagger``, made with ``horizon`` 2) gives the model's own states and MPS's
+        next two steps from each (:class:`~lagfluid.zoo.ExpertStepWindows`).
+        """
         return self.windows(data_dir, "train"), self.windows(data_dir, "valid")
 
     def windows(self, data_dir: Path, split: str) -> StepWindows:
@@ -125,8 +136,10 @@ class CConvTrainable:
         # looks one-sided, a false surface point inside the wall that rollouts (the whole tank) never see.
         # Measured on data=cpu at a 3.1 l0 crop: 2,096 of a window's 3,989 surface points were such.
         crop = (REACH + SURFACE_RADIUS) * 2 * float(self.options["particle_radius"])
-        steps, frames = (0, self.unroll_frames) if self.unroll_frames else (UNROLL, 0)
-        return StepWindows(data_dir, split, steps=steps, frames=frames, boundary_radius=crop)
+        if self.unroll_frames:
+            return StepWindows(data_dir, split, steps=0, frames=self.unroll_frames, boundary_radius=crop)
+        # a DAgger dataset's windows (the model's own states, MPS's next steps) have the same fields
+        return step_windows(data_dir, split, UNROLL, boundary_radius=crop)
 
     def build_network(self) -> nn.Module:
         """A :class:`CConvNet` of the options: fresh, or ``model.start_from``'s weights (module doc).

@@ -2,19 +2,22 @@
 
 For each training scene of a dataset (same scene settings, seeds, materials and steps: a
 :class:`~lagfluid.generate.spec.DataSpec` of the dataset's own generation config), an end-to-end model
-(``model=gns`` with ``model.weights``; any simulator that is not split-step) is rolled out from the scene's
-start as ``task=simulate`` would (GNS: its MPS warm start, then its own steps of ``frame_dt``). At every
-``every``-th frame the model made (counted from its first own step), :func:`expert_step` lets MPS advance
-one model step (``substeps = frame_dt / dt`` solver steps) from the model's positions ``x_t`` and velocity
-``v_t = (x_t - x_{t-1}) / frame_dt``; MPS starts its own state there (pressure 0, its PPE's warm start
-only), with the constants of the scene's start. The rollout stops where the model's guard stops it (that is
-where its mistakes are); the frames and labels before are kept, and the file says where and why it stopped.
-MPS's answer from a model state is checked by the solver's own guard: where it fails, the scene stops there.
+(``model=gns`` or ``cconv`` with ``model.weights``; any simulator that is not split-step, with
+``model.exact_after``'s stages after each step if on) is rolled out from the scene's start as
+``task=simulate`` would (GNS: its MPS warm start, then its own steps of ``frame_dt``). At every ``every``-th
+frame the model made (counted from its first own step), :func:`expert_step` lets MPS advance one model step
+(``substeps = frame_dt / dt`` solver steps) from the model's positions ``x_t`` and velocity ``v_t = (x_t -
+x_{t-1}) / frame_dt``; MPS starts its own state there (pressure 0, its PPE's warm start only), with the
+constants of the scene's start; with a label ``horizon`` H > 1, MPS goes on H - 1 model steps from its own
+answer (the targets of a model trained on H-step unrolls). The rollout stops where the model's guard stops it
+(that is where its mistakes are); the frames and labels before are kept, and the file says where and why it
+stopped. MPS's answer from a model state is checked by the solver's own guard: where it fails, the scene stops
+there.
 
 Files (layout: :mod:`lagfluid.data.expert_windows`) are written as ``task=generate`` writes scenes: into a
 ``.part`` file renamed when complete, locked per scene, with a fingerprint of the dataset scene's and of the
-expert settings (model, hash of its weights, ``every``); a finished scene of the same fingerprint is skipped,
-one of another is an error. ``metadata.json`` follows once every training scene is there.
+expert settings (model, hash of its weights, ``every``, ``horizon``); a finished scene of the same fingerprint
+is skipped, one of another is an error. ``metadata.json`` follows once every training scene is there.
 """
 
 from __future__ import annotations
@@ -23,6 +26,7 @@ import hashlib
 import json
 import logging
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -40,7 +44,7 @@ from lagfluid.config import (
     run_attributes,
     run_guard,
 )
-from lagfluid.data.expert_windows import EXPERT, EXPERT_FORMAT_VERSION, LABELS
+from lagfluid.data.expert_windows import EXPERT, EXPERT_FORMAT_VERSION, LABELS, LATER
 from lagfluid.data.layout import (
     DATASET_FORMAT,
     GROUP,
@@ -139,15 +143,27 @@ class ExpertLabels:
         self.frame = appendable(group, "frame", (), "i8", 1024)
         self.position = appendable(group, "position", (n_fluid, 3), dtype.str)
         self.velocity = appendable(group, "velocity", (n_fluid, 3), dtype.str)
+        horizon = int(attrs.get("horizon", 1))
+        self.later = appendable(group, LATER, (horizon - 1, n_fluid, 3), dtype.str) if horizon > 1 else None
         self.count = 0
 
-    def append(self, frame: int, state: ParticleState) -> None:
-        """Store the label of trajectory frame ``frame``: the fluid rows of MPS's ``state``."""
+    def append(self, frame: int, states: Sequence[ParticleState]) -> None:
+        """Store the labels of trajectory frame ``frame``: the fluid rows of MPS's ``states``, one per step.
+
+        ``states[0]`` (one model step after the frame) fills ``position`` and ``velocity``; the further
+        steps (``horizon`` > 1) ``later_position``.
+        """
         nf = self.position.shape[1]
         dtype = self.position.dtype
+
+        def rows(t: torch.Tensor) -> np.ndarray:
+            return t[:nf].detach().cpu().numpy().astype(dtype)
+
         append_rows(self.frame, np.array([frame], np.int64))
-        append_rows(self.position, state.pos[:nf].detach().cpu().numpy().astype(dtype)[None])
-        append_rows(self.velocity, state.vel[:nf].detach().cpu().numpy().astype(dtype)[None])
+        append_rows(self.position, rows(states[0].pos)[None])
+        append_rows(self.velocity, rows(states[0].vel)[None])
+        if self.later is not None:
+            append_rows(self.later, np.stack([rows(s.pos) for s in states[1:]])[None])
         self.count += 1
 
     def close(self) -> None:
@@ -155,13 +171,20 @@ class ExpertLabels:
         self.group.attrs.update(complete=True, count=self.count)
 
 
-def expert_identity(sim: Simulator, every: int) -> dict[str, Any]:
-    """What decides a DAgger scene's content besides the dataset scene: the model, its weights, ``every``."""
+def expert_identity(sim: Simulator, every: int, horizon: int = 1) -> dict[str, Any]:
+    """What decides a DAgger scene's content besides the dataset scene.
+
+    The model (its name says which exact stages follow it), a hash of its weights, ``every`` and, when more
+    than one, the label ``horizon`` (absent at 1: the fingerprints of datasets made before it existed hold).
+    """
     weights = str(sim.attributes().get("weights", ""))
     digest = (
         hashlib.sha256(Path(weights).read_bytes()).hexdigest()[:16] if Path(weights).is_file() else weights
     )
-    return {"model": sim.name, "weights": digest, "every": every, "labels": LABELS}
+    identity = {"model": sim.name, "weights": digest, "every": every, "labels": LABELS}
+    if horizon != 1:
+        identity["horizon"] = horizon
+    return identity
 
 
 def expert_fingerprint(spec: DataSpec, index: int, identity: dict[str, Any]) -> str:
@@ -171,28 +194,28 @@ def expert_fingerprint(spec: DataSpec, index: int, identity: dict[str, Any]) -> 
 
 
 def end_to_end_simulator(cfg: DictConfig) -> Simulator:
-    """``cfg.model`` as the policy of a DAgger dataset.
+    """``cfg.model`` as the policy of a DAgger dataset, with ``model.exact_after``'s stages if on.
 
     Raises:
-        ConfigError: a split-step model (its DAgger is ``train.onpolicy``), or exact stages after the model
-            (the rounds train the plain model on its own states).
+        ConfigError: a split-step model (its DAgger is ``train.onpolicy``).
     """
     sim = build_simulator(cfg)
-    if isinstance(sim, SplitStepSimulator):
+    model = sim.model if isinstance(sim, ExactAfter) else sim
+    if isinstance(model, SplitStepSimulator):
         raise ConfigError(
-            f"train.dagger is for end-to-end models (gns): model {cfg.model.name} is split-step; its rounds "
-            "are train.onpolicy.rounds"
-        )
-    if isinstance(sim, ExactAfter):
-        raise ConfigError(
-            f"train.dagger rolls out the plain model, not {sim.name}: set model.exact_after.collision=false "
-            "and model.exact_after.pressure=false"
+            f"train.dagger is for end-to-end models (gns, cconv): model {cfg.model.name} is split-step; its "
+            "rounds are train.onpolicy.rounds"
         )
     return sim
 
 
-def expert_scene(cfg: DictConfig, spec: DataSpec, index: int, sim: Simulator, every: int) -> Path:
+def expert_scene(
+    cfg: DictConfig, spec: DataSpec, index: int, sim: Simulator, every: int, horizon: int = 1
+) -> Path:
     """Roll ``sim`` out on scene ``index``, label it with MPS, and write its file; returns the path.
+
+    Each label is ``horizon`` model steps of MPS from the model's frame (the first from the model's
+    state, the others continuing MPS's own: the windows of a model trained on short unrolls, CConv's two).
 
     Raises:
         ConfigError: the model's step is not a whole number of solver steps, or (a model with a history of
@@ -217,7 +240,7 @@ def expert_scene(cfg: DictConfig, spec: DataSpec, index: int, sim: Simulator, ev
     expert.reset(start)  # the scene's constants, as the dataset's MPS run had them
     sim.reset(state)
     nf, steps = state.n_fluid, spec.steps // substeps
-    identity = expert_identity(sim, every)
+    identity = expert_identity(sim, every, horizon)
     attrs = {
         **run_attributes(state, cfg, sim.name, spec.builder, 1),
         **sim.attributes(),
@@ -247,7 +270,7 @@ def expert_scene(cfg: DictConfig, spec: DataSpec, index: int, sim: Simulator, ev
         writer.file.create_group(EXPERT),
         nf,
         stored_dtype(state),
-        {"every": every, "substeps": substeps, "solver_dt": params.dt},
+        {"every": every, "substeps": substeps, "solver_dt": params.dt, "horizon": horizon},
     )
     learned, clock = 0, time.perf_counter()
 
@@ -258,14 +281,20 @@ def expert_scene(cfg: DictConfig, spec: DataSpec, index: int, sim: Simulator, ev
         learned += 1
         if (learned - 1) % every:
             return
-        answer = expert_step(expert, before, after, params.dt, substeps)
-        try:
-            expert_guard.check(answer)
-        except RolloutError as err:
-            raise RolloutError(
-                f"MPS advanced from the model's frame {after.step} fails its guard: {err}"
-            ) from err
-        labels.append(after.step, answer)
+        answers = [expert_step(expert, before, after, params.dt, substeps)]
+        for _ in range(horizon - 1):  # MPS goes on from its own answer
+            answer = answers[-1]
+            for _ in range(substeps):
+                answer = expert.step(answer)
+            answers.append(answer)
+        for answer in answers:
+            try:
+                expert_guard.check(answer)
+            except RolloutError as err:
+                raise RolloutError(
+                    f"MPS advanced from the model's frame {after.step} fails its guard: {err}"
+                ) from err
+        labels.append(after.step, answers)
 
     stopped: dict[str, Any] = {}
     try:
@@ -325,7 +354,12 @@ def write_expert_metadata(spec: DataSpec, scenes: list[int], identity: dict[str,
         "trajectory": "model",
         "labels": LABELS,
         "policy": identity,
-        EXPERT: {"every": identity["every"], "substeps": int(first["sample_every"]), "solver": "mps"},
+        EXPERT: {
+            "every": identity["every"],
+            "substeps": int(first["sample_every"]),
+            "horizon": identity.get("horizon", 1),
+            "solver": "mps",
+        },
         "num_scenes": len(scenes),
         "steps": int(first["steps"]),
         "sample_every": int(first["sample_every"]),
@@ -368,8 +402,9 @@ def write_expert_metadata(spec: DataSpec, scenes: list[int], identity: dict[str,
 def generate_expert(cfg: DictConfig) -> dict[str, Any] | None:
     """The DAgger dataset of ``cfg`` (a ``task=generate`` config of the dataset, ``model=`` the policy).
 
-    ``cfg.data.expert_every``: label every k-th frame the model made; ``cfg.data.scene_index``: only that
-    training scene (a job of several), else every training scene, then ``metadata.json``.
+    ``cfg.data.expert_every``: label every k-th frame the model made; ``cfg.data.expert_horizon`` (absent:
+    1): model steps of MPS in each label; ``cfg.data.scene_index``: only that training scene (a job of
+    several), else every training scene, then ``metadata.json``.
 
     Returns:
         the metadata once every training scene is there, else None.
@@ -384,19 +419,22 @@ def generate_expert(cfg: DictConfig) -> dict[str, Any] | None:
     every = cfg.data.get("expert_every")
     if isinstance(every, bool) or not isinstance(every, int) or every < 1:
         raise ConfigError(f"train.dagger.every must be a whole number >= 1, got {every!r}")
+    horizon = cfg.data.get("expert_horizon", 1)
+    if isinstance(horizon, bool) or not isinstance(horizon, int) or horizon < 1:
+        raise ConfigError(f"train.dagger.horizon must be a whole number >= 1, got {horizon!r}")
     scenes = train_scenes(spec)
     if spec.scene_index is not None and spec.scene_index not in scenes:
         raise ConfigError(f"data.scene_index={spec.scene_index} is not a training scene ({scenes})")
     todo = scenes if spec.scene_index is None else [spec.scene_index]
     sim = end_to_end_simulator(cfg)
-    identity = expert_identity(sim, every)
+    identity = expert_identity(sim, every, horizon)
     folder = scene_path(spec.out_dir, 0).parent
     with hold_outputs(folder, "generate", [scene_path(spec.out_dir, k).stem for k in todo], "data.out_dir"):
         for k in todo:
             if scene_done(scene_path(spec.out_dir, k), expert_fingerprint(spec, k, identity), samples=False):
                 log.info("DAgger scene %d is done, skipped", k)
                 continue
-            expert_scene(cfg, spec, k, sim, every)
+            expert_scene(cfg, spec, k, sim, every, horizon)
         done = all(
             scene_done(scene_path(spec.out_dir, k), expert_fingerprint(spec, k, identity), samples=False)
             for k in scenes
