@@ -473,3 +473,40 @@ def test_device_option_is_checked_and_keeps_the_cpu_results_and_readme(capsys):
         with pytest.raises(SystemExit):
             parse_args(["--device", bad])
         assert says in capsys.readouterr().err
+
+
+def test_the_tradeoff_figure_keeps_every_key_line_and_title_line_inside_the_figure(tmp_path, monkeypatch):
+    """Long row labels (a model with exact stages after it) wrap instead of running off the figure's edge."""
+    import math
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from benchmarks.tables.plots import plot_tradeoff
+
+    long = "GNS (CPU size), DAgger + exact collision + MPS pressure (K=3, w=0.5)"
+
+    def row(name, key, seconds, status="complete"):
+        return {
+            "simulator": name, "simulator_key": key, "status": status, "s_per_simulated_s": seconds,
+            "chamfer_mean_mm": 20.0 + seconds, "chamfer_t0_mm": 0.0, "density_error_mean": 0.01,
+            "pareto_chamfer_mean_mm": True, "pareto_density_error_mean": True,
+        }  # fmt: skip
+
+    rows = [row("MPS", "mps", 40.0), row(long, "gns_dagger_exact", 45.0)]
+    rows += [row(f"{long} stopped variant {k}", f"gns_{k}", math.nan, "stopped") for k in range(6)]
+    figures = []
+    monkeypatch.setattr(plt, "close", figures.append)  # keep the figure to measure its texts
+    plot_tradeoff(tmp_path / "t.png", rows, "Speed/accuracy on dam, 1 s")
+    (fig,) = figures
+    renderer = fig.canvas.get_renderer()
+    width, height = fig.bbox.width, fig.bbox.height
+    key = [t for t in fig.texts if t is not fig._suptitle]
+    texts = [*key, fig._suptitle]
+    assert sum(long.split()[0] in t.get_text() for t in key) == 1
+    for text in texts:
+        box = text.get_window_extent(renderer)
+        assert box.x0 >= 0 and box.x1 <= width and box.y1 <= height, (text.get_text(), box, width)
+    assert max(len(line) for t in key for line in t.get_text().splitlines()) <= 4 + 36

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import textwrap
 from pathlib import Path
 from typing import Any
 
@@ -10,6 +11,9 @@ import numpy as np
 
 from benchmarks.tables.bench import Run
 from benchmarks.tables.simulators import GROUND_TRUTH
+
+KEY_WIDTH = 36
+"""Characters of a trade-off key line (8 pt monospace in the figure's right fifth); longer names wrap."""
 
 
 def plot_fig5(path: Path, runs: list[Run], verdict: str, title: str) -> None:
@@ -43,7 +47,9 @@ def plot_fig5(path: Path, runs: list[Run], verdict: str, title: str) -> None:
 
 # The colours of the simulators in the trade-off plot, in the order their rows come (the ground truth is
 # black; C3, red, is the Pareto front's).
-_PALETTE = ("C0", "C1", "C2", "C4", "C5", "C6", "C8", "C9", "C7")
+# matplotlib's cycle without red (the Pareto front) and black (the ground truth), then darker hues: 14 apart
+_PALETTE = ("C0", "C1", "C2", "C4", "C5", "C6", "C8", "C9", "C7", "#6a3d9a", "#01665e", "#b15928", "#c51b7d",
+            "#1a237e")  # fmt: skip
 
 
 def simulator_colours(rows: list[dict[str, Any]]) -> dict[str, str]:
@@ -70,8 +76,10 @@ def plot_tradeoff(path: Path, rows: list[dict[str, Any]], title: str) -> None:
 
     done = [r for r in rows if r["status"] == "complete" and math.isfinite(r["s_per_simulated_s"])]
     done.sort(key=lambda r: r["s_per_simulated_s"])
-    fig, axes = plt.subplots(1, 2, figsize=(15, 6.2))
-    fig.subplots_adjust(left=0.05, right=0.8, bottom=0.1, top=0.86, wspace=0.2)
+    stopped_lines = len(textwrap.wrap(", ".join(r["simulator"] for r in rows if r not in done), 180))
+    fig, axes = plt.subplots(1, 2, figsize=(15, 6.2 + 0.15 * stopped_lines))
+    axes_top = 0.86 - 0.02 * stopped_lines  # room for the title's list of rows not shown
+    fig.subplots_adjust(left=0.05, right=0.8, bottom=0.1, top=axes_top, wspace=0.2)
     panels = (
         ("chamfer_mean_mm", "Chamfer distance to the reference MPS, mean over frames (mm)", "symlog"),
         ("density_error_mean", "density error, mean over frames", "log"),
@@ -107,17 +115,21 @@ def plot_tradeoff(path: Path, rows: list[dict[str, Any]], title: str) -> None:
         ax.set_xlabel("wall seconds per simulated second (log)")
         ax.set_ylabel(ylabel)
         ax.grid(alpha=0.3, which="both")
-    # the key, each line in its simulator's colour (one text per line: a text has one colour)
+    # the key, each entry in its simulator's colour (one text per entry: a text has one colour), long
+    # names wrapped onto indented lines so that they stay inside the figure
     line = 8 * 1.35 / 72 / fig.get_figheight()  # 8 pt lines in figure coordinates
+    top = axes_top
     for i, r in enumerate(done, start=1):
-        colour, top = colours[r["simulator_key"]], 0.86 - (i - 1) * line
-        text = f"{i:2d}  {r['simulator']}"
+        wrapped = textwrap.wrap(r["simulator"], KEY_WIDTH)
+        text = "\n".join([f"{i:2d}  {wrapped[0]}", *(f"    {part}" for part in wrapped[1:])])
+        colour = colours[r["simulator_key"]]
         fig.text(0.815, top, text, fontsize=8, va="top", family="monospace", color=colour)
+        top -= line * len(wrapped)
     sub = "colour: one per simulator as in the key (black: the ground truth), its variants (dt, tolerance, "
     sub += "spacing) share it; hollow: coarser spacing (its Chamfer includes the lattice offset at t = 0)"
     stopped = [r["simulator"] for r in rows if r not in done]
     if stopped:
-        sub += "\nnot shown (stopped or failed): " + ", ".join(stopped)
+        sub += "\n" + "\n".join(textwrap.wrap("not shown (stopped or failed): " + ", ".join(stopped), 180))
     fig.suptitle(f"{title}\n{sub}", fontsize=10)
     fig.savefig(path, dpi=110)
     plt.close(fig)
