@@ -36,7 +36,7 @@ ROOT = {
     "gns_one_step.py",
     "fgn_recipe.py",
     "exact_after.py",
-    "gns_levers.py",
+    "levers.py",
     "unseen_obstacles.py",
     "wall_approach.py",
     "cconv_finetune_loss.py",

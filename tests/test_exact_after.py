@@ -406,12 +406,12 @@ def test_the_benchmark_rolls_out_the_weights_it_is_given():
     assert given.index("model.weights=runs/train/gns-16ms") < given.index("model.exact_after.collision=true")
 
 
-def test_gns_levers_runs_each_levers_weights_in_its_own_folder(tmp_path, monkeypatch):
-    """``benchmarks.gns_levers``: every lever's rows come from its own weights and run folder, labelled with
+def test_levers_runs_each_levers_weights_in_its_own_folder(tmp_path, monkeypatch):
+    """``benchmarks.levers``: every lever's rows come from its own weights and run folder, labelled with
     its name and what made it; a lever that is not NAME=DIR=TEXT, or whose DIR is missing, is refused."""
     import argparse
 
-    import benchmarks.gns_levers as levers
+    import benchmarks.levers as levers
 
     seen = []
 
@@ -420,13 +420,16 @@ def test_gns_levers_runs_each_levers_weights_in_its_own_folder(tmp_path, monkeyp
         return [{"simulator": model, "rollout": "complete"}]
 
     monkeypatch.setattr(levers, "run_model", fake_run_model)
-    args = argparse.Namespace(runs_dir=str(tmp_path), weights=None)
+    args = argparse.Namespace(runs_dir=str(tmp_path), weights=None, model="gns")
     rows = levers.lever_rows("dagger2", "runs/x", args)
     assert seen == [("gns", "runs/x", str(tmp_path / "dagger2"))]
+    args.model = "cconv"
+    levers.lever_rows("dagger1", "runs/y", args)
+    assert seen[-1] == ("cconv", "runs/y", str(tmp_path / "dagger1"))
     row = {"lever": "dagger2", "weights": "runs/x", "simulator": "gns"}
     assert rows == [{**row, "rollout": "complete"}]
     assert levers.parse_lever(f"a={tmp_path}=what made it=x") == ("a", str(tmp_path), "what made it=x")
     with pytest.raises(SystemExit, match="is not NAME=DIR=TEXT"):
         levers.parse_lever("a=b")
-    with pytest.raises(SystemExit, match=r"/no/such \(of a\) is not a folder of GNS weights"):
+    with pytest.raises(SystemExit, match=r"/no/such \(of a\) is not a folder of the model's weights"):
         levers.parse_lever("a=/no/such=text")
