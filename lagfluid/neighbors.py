@@ -40,6 +40,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from lagfluid import pair_kernels
+
 __all__ = [
     "BACKENDS",
     "NeighborOverflowError",
@@ -102,8 +104,6 @@ def _import_torch_cluster() -> ModuleType | None:
 
 def available_backends() -> tuple[str, ...]:
     """Backends usable in this environment, in the order of :data:`BACKENDS`."""
-    from lagfluid import pair_kernels
-
     missing = {"torch_cluster": _import_torch_cluster() is None, "numba": not pair_kernels.available()}
     return tuple(b for b in BACKENDS if not missing.get(b, False))
 
@@ -537,8 +537,6 @@ def radius_graph(
 
     found = None
     if backend == "numba":
-        from lagfluid import pair_kernels
-
         found = pair_kernels.cell_search(pos.detach(), radius, batch, recv)
         if found is None:  # a domain too wide for the cell keys (far-flung particles): the k-d tree
             backend = "scipy"
@@ -663,10 +661,12 @@ def kernel_adjacency(edge_index: Tensor, weight: Tensor, num_nodes: int | tuple[
     if n_target < 0 or n_source < 0:
         raise ValueError(f"num_nodes must be >= 0, got {num_nodes!r}")
     j, i = edge_index[0].long(), edge_index[1].long()
-    crow = _compiled_row_pointer(i, j, n_target, n_source)
-    if crow is not None:  # sorted, each pair once, in range: checked and indexed in one compiled pass
-        return _csr(crow, j, weight, n_target, n_source)
-    if e:
+    return pair_kernels.backend_for("kernel_adjacency", i, j)(i, j, weight, n_target, n_source)
+
+
+def _adjacency_torch(i: Tensor, j: Tensor, weight: Tensor, n_target: int, n_source: int) -> Tensor:
+    """:func:`kernel_adjacency` of the pairs ``(i, j)`` (E,) each: checked, sorted where they are not."""
+    if i.numel():
         key = i * n_source + j
         # The range and order checks in one read of the device (on CUDA each read is a synchronisation).
         checks = [i.min(), i.max(), j.min(), j.max(), (key[1:] <= key[:-1]).any().long()]
@@ -694,25 +694,29 @@ def _csr(crow: Tensor, col: Tensor, weight: Tensor, n_target: int, n_source: int
         return torch.sparse_csr_tensor(crow, col, weight, size=(n_target, n_source), check_invariants=False)
 
 
-def _compiled_row_pointer(i: Tensor, j: Tensor, n_target: int, n_source: int) -> Tensor | None:
-    """(n_target + 1,) CSR row pointer of pairs ``(i, j)`` sorted by ``i`` then ``j``, checked in one pass.
+def _adjacency_compiled(i: Tensor, j: Tensor, weight: Tensor, n_target: int, n_source: int) -> Tensor:
+    """:func:`kernel_adjacency` with the CSR row pointer from one compiled pass that also checks the pairs.
 
-    The pairs must be sorted, each once, in range; None when they are not (the torch path then sorts them
-    or reports the bad index) or off the CPU. The torch checks and ``bincount`` take ~8 passes over the
-    pairs (the step builds two such matrices of ~1.5M pairs at 40k particles: see
+    Pairs that are not sorted by ``i`` then ``j``, each once, in range go to the torch body (which sorts
+    them or reports the bad index), as does an empty graph. The torch checks and ``bincount`` take ~8 passes
+    over the pairs (the step builds two such matrices of ~1.5M pairs at 40k particles: see
     ``benchmarks/results/fgn_speed.md``).
     """
-    from lagfluid import pair_kernels
-
-    if i.numel() == 0 or not pair_kernels.applies(i, j):
-        return None
+    if i.numel() == 0:
+        return _adjacency_torch(i, j, weight, n_target, n_source)
     kern = pair_kernels.load("lagfluid.physics._operators_numba")
-    if kern is None:
-        return None
     dst, src = i.contiguous().numpy(), j.contiguous().numpy()
     pair_kernels.set_threads()
     row_ptr = np.empty(n_target + 1, dtype=np.int64)
     unordered, outside = kern.check_pairs(dst, src, n_target, n_source, row_ptr)
     if unordered or outside:
-        return None
-    return torch.from_numpy(row_ptr)
+        return _adjacency_torch(i, j, weight, n_target, n_source)
+    return _csr(torch.from_numpy(row_ptr), j, weight, n_target, n_source)
+
+
+pair_kernels.register(
+    "kernel_adjacency",
+    compiled=_adjacency_compiled,
+    torch=_adjacency_torch,
+    module="lagfluid.physics._operators_numba",
+)

@@ -14,6 +14,14 @@ rounds a Python scalar. The kept pairs keep their input order, so target-sorted 
 
 The torch path remains for CUDA tensors, for positions that require grad, and where Numba is not
 installed (:func:`available`).
+
+Backends are chosen in one place. Every computation with a compiled and a torch body, here and in the
+operators, the PPE assembly, FGN's and CConv's stages, is a :class:`Kernel` registered by name
+(:func:`register`); an algorithm asks :func:`backend_for` for the body that serves its tensors and calls it,
+without a branch of its own. The compiled body serves CPU tensors in float32 or float64 that need no
+gradient, when Numba is installed (:func:`applies`); the torch body every other case. A compiled body
+may hand input it does not take (edges not sorted by target, a handful of pairs) to its torch body: both
+give the same numbers.
 """
 
 from __future__ import annotations
@@ -21,8 +29,10 @@ from __future__ import annotations
 import functools
 import importlib
 import logging
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from types import ModuleType
+from typing import Any
 
 import numpy as np
 import torch
@@ -96,12 +106,73 @@ def available() -> bool:
     return _compiled() is not None
 
 
+_COMPILED_FLOATS = (torch.float32, torch.float64)  # the floating dtypes the Numba kernels are written for
+
+
 def applies(*tensors: Tensor) -> bool:
-    """True when the kernels should serve these tensors: Numba present, all on the CPU, none needing grad."""
+    """True when compiled kernels should serve these tensors (the one test :func:`backend_for` makes).
+
+    Numba present; every tensor on the CPU, none needing grad, the floating ones float32 or float64
+    (integer and bool tensors: any dtype).
+    """
     return (
-        all(t.device.type == "cpu" and not (t.requires_grad and torch.is_grad_enabled()) for t in tensors)
+        all(
+            t.device.type == "cpu"
+            and not (t.requires_grad and torch.is_grad_enabled())
+            and (t.dtype in _COMPILED_FLOATS or not t.dtype.is_floating_point)
+            for t in tensors
+        )
         and available()
     )
+
+
+@dataclass(frozen=True)
+class Kernel:
+    """One computation with two bodies that give the same numbers, bit for bit.
+
+    Attributes:
+        name: its key in :data:`KERNELS`.
+        compiled: the Numba body (CPU, no autograd); it may hand input it does not take to ``torch``.
+        torch: the torch body (any device, autograd, no Numba needed).
+        module: the Numba module the compiled body loads (None: this module's pair kernels), which must
+            load for the compiled body to serve.
+    """
+
+    name: str
+    compiled: Callable[..., Any]
+    torch: Callable[..., Any]
+    module: str | None = None
+
+
+KERNELS: dict[str, Kernel] = {}
+"""Every registered kernel by name (:func:`register`)."""
+
+
+def register(
+    name: str, *, compiled: Callable[..., Any], torch: Callable[..., Any], module: str | None = None
+) -> Kernel:
+    """Register the two bodies of kernel ``name`` (see :class:`Kernel`); :func:`backend_for` picks one.
+
+    Raises:
+        ValueError: ``name`` is already the kernel of another module.
+    """
+    known = KERNELS.get(name)
+    if known is not None and known.torch.__module__ != torch.__module__:
+        raise ValueError(f"kernel {name!r} is already registered by {known.torch.__module__}")
+    KERNELS[name] = kernel = Kernel(name, compiled, torch, module)
+    return kernel
+
+
+def backend_for(name: str, *tensors: Tensor, compiled: bool = True) -> Callable[..., Any]:
+    """The body of kernel ``name`` that serves ``tensors``: the one place where a backend is chosen.
+
+    The compiled body where :func:`applies` to ``tensors`` and its Numba module loads, else the torch body;
+    always the torch body with ``compiled=False`` (a caller's own backend option, e.g. a search backend).
+    """
+    kernel = KERNELS[name]
+    if compiled and applies(*tensors) and (kernel.module is None or load(kernel.module) is not None):
+        return kernel.compiled
+    return kernel.torch
 
 
 def set_threads() -> None:
@@ -227,7 +298,7 @@ def select_below(
 
 
 def induced_edges(edge_index: Tensor, keep: Tensor, local: Tensor) -> tuple[Tensor, Tensor]:
-    """The edges between kept nodes, renumbered, and where they were (order kept).
+    """The edges between kept nodes, renumbered, and where they were (order kept): one compiled pass.
 
     Args:
         edge_index: (2, E) int64 on the CPU.
@@ -245,6 +316,17 @@ def induced_edges(edge_index: Tensor, keep: Tensor, local: Tensor) -> tuple[Tens
     positions = np.empty(kept, dtype=np.int64)
     kern.fill_induced(src, dst, k, _as_numpy(local), offsets, out[0], out[1], positions)
     return torch.from_numpy(out), torch.from_numpy(positions)
+
+
+def _induced_edges_torch(edge_index: Tensor, keep: Tensor, local: Tensor) -> tuple[Tensor, Tensor]:
+    """:func:`induced_edges` in torch operations (~6 passes over the edges), on any device."""
+    positions = torch.nonzero(keep.index_select(0, edge_index[0]) & keep.index_select(0, edge_index[1]))
+    positions = positions.flatten()
+    sub = local.index_select(0, edge_index.index_select(1, positions).flatten()).view(2, -1)
+    return sub, positions
+
+
+register("induced_edges", compiled=induced_edges, torch=_induced_edges_torch)
 
 
 # The cell list keeps a dense table of cells: above this many cells per particle (a far-flung particle

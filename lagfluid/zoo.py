@@ -58,8 +58,10 @@ Building blocks of a network and its step
     ``edge_vectors``         relative positions and distances of a graph's edges
     ``kernel``               the MPS weight ``re / r - 1`` of pair distances (0 beyond ``re``)
     ``device_constant``      a small constant tensor, cached per device and dtype
-    ``pair_kernels``         compiled (numba) kernels: ``load(module)`` a plugin's own, ``applies(*tensors)``
-                             whether they run on these tensors, ``set_threads()`` before calling them
+    ``pair_kernels``         compiled (numba) kernels: ``register(name, compiled=, torch=, module=)`` a
+                             plugin's kernel with its two bodies, ``backend_for(name, *tensors)`` the body
+                             that serves these tensors; ``load(module)`` and ``set_threads()`` in a
+                             compiled body
 
 Checkpoints (one file per network, tensors and plain values only)
     ``read_checkpoint``      load and check a checkpoint (format, model, kind, finite weights)

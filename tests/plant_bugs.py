@@ -917,6 +917,49 @@ PLANTS = [
         "loss_window=[]",
         "tests/test_train.py::test_one_iteration_is_one_adam_step_at_its_rate_logged_and_saved_for_the_resume",
     ),
+    # issue 36, item 2: backends chosen once (lagfluid.pair_kernels.backend_for), each kernel's two bodies
+    (
+        "backends: the dispatch always picks the torch body (the compiled kernels never run)",
+        "lagfluid/pair_kernels.py",
+        "        return kernel.compiled\n",
+        "        return kernel.torch\n",
+        "tests/test_kernel_dispatch.py::test_cpu_float32_and_float64_take_the_compiled_body_where_numba_is",
+    ),
+    (
+        "backends: the dispatch sends float16 to the compiled kernels (written for float32 and float64)",
+        "lagfluid/pair_kernels.py",
+        "and (t.dtype in _COMPILED_FLOATS or not t.dtype.is_floating_point)",
+        "and True",
+        "tests/test_kernel_dispatch.py::test_other_devices_dtypes_and_autograd_take_the_torch_body",
+    ),
+    (
+        "backends: the dispatch sends tensors that need a gradient to the compiled kernels",
+        "lagfluid/pair_kernels.py",
+        "and not (t.requires_grad and torch.is_grad_enabled())",
+        "and True",
+        "tests/test_kernel_dispatch.py::test_other_devices_dtypes_and_autograd_take_the_torch_body",
+    ),
+    (
+        "backends: the torch body of select_below keeps the pairs at exactly the radius",
+        "lagfluid/neighbor_list.py",
+        "    index = torch.nonzero(dist < radius).flatten()\n",
+        "    index = torch.nonzero(dist <= radius).flatten()\n",
+        "tests/test_kernel_dispatch.py::test_both_bodies_give_the_worked_out_numbers[select_below]",
+    ),
+    (
+        "backends: the min-pressure gradient registered with its bodies swapped (autograd would reach Numba)",
+        "lagfluid/physics/operators.py",
+        '"min_pressure_gradient", compiled=_min_gradient_compiled, torch=_min_gradient_torch,',
+        '"min_pressure_gradient", compiled=_min_gradient_torch, torch=_min_gradient_compiled,',
+        "tests/test_operators.py::test_compiled_min_pressure_gradient_equals_the_torch_operations",
+    ),
+    (
+        "backends: the compiled number density hands every graph to its torch body",
+        "lagfluid/physics/operators.py",
+        "    if rows is None:\n        return _number_density_torch(",
+        "    if True:\n        return _number_density_torch(",
+        "tests/test_operators.py::test_compiled_number_density_equals_the_torch_operations",
+    ),
 ]
 
 

@@ -22,7 +22,7 @@ FGN_READS = {
     "needs_rebuild": "the Verlet list's rebuild test, once per set of positions it is asked at",
     "moved": "the displacement since an anchor graph, which sets the radius a derived graph is cut at",
     "_derive": "whether a wall newly within reach of the fluid needs the full filter",
-    "kernel_adjacency": "a CSR matrix's range and order checks, one read per matrix",
+    "_adjacency_torch": "a CSR matrix's range and order checks (kernel_adjacency), one read per matrix",
 }
 
 

@@ -14,10 +14,9 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
-from lagfluid import pair_kernels
 from lagfluid.errors import ConfigError
 from lagfluid.neighbor_list import Graph, VerletNeighborList
-from lagfluid.neighbors import edge_vectors
+from lagfluid.pair_kernels import backend_for
 from lagfluid.physics.settings import MPSConstants, SolverSettings
 from lagfluid.physics.timing import StageTimer
 from lagfluid.state import ParticleState, SceneParams
@@ -241,10 +240,5 @@ class StepContext:
                 mask = active
                 mask[:nf] = True
             near = full.within(radius + 2.0 * moved)
-        if pair_kernels.applies(pos):
-            return Graph(*pair_kernels.pairs_within(pos, [near.edge_index], radius, [mask]), radius)
-        rel, dist = edge_vectors(pos, near.edge_index)
-        keep = dist < radius
-        if mask is not None:
-            keep &= mask.index_select(0, near.edge_index[1])
-        return Graph(near.edge_index, rel, dist, radius).select(keep)
+        pairs_within = backend_for("pairs_within", pos)
+        return Graph(*pairs_within(pos, [near.edge_index], radius, [mask]), radius)

@@ -58,12 +58,7 @@ def induced_subgraph(edge_index: Tensor, keep: Tensor) -> tuple[Tensor, Tensor, 
     nodes = torch.nonzero(keep).flatten()
     local = torch.full((keep.shape[0],), -1, dtype=torch.long, device=keep.device)
     local[nodes] = torch.arange(nodes.numel(), device=keep.device)
-    if pair_kernels.applies(edge_index):  # one compiled pass instead of ~6 over the edges
-        return nodes, *pair_kernels.induced_edges(edge_index, keep, local)
-    positions = torch.nonzero(keep.index_select(0, edge_index[0]) & keep.index_select(0, edge_index[1]))
-    positions = positions.flatten()
-    sub = local.index_select(0, edge_index.index_select(1, positions).flatten()).view(2, -1)
-    return nodes, sub, positions
+    return nodes, *pair_kernels.backend_for("induced_edges", edge_index)(edge_index, keep, local)
 
 
 class LearnedAdvection:
