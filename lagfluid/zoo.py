@@ -82,7 +82,6 @@ Errors (each becomes one line on the command line)
 
 from __future__ import annotations
 
-from lagfluid import pair_kernels
 from lagfluid.data.datasets import StepWindows, TrajectoryWindows
 from lagfluid.data.expert_windows import trajectory_windows
 from lagfluid.data.symmetry import HorizontalSymmetry
@@ -105,7 +104,7 @@ from lagfluid.models.mps_simulator import build_mps
 from lagfluid.models.simulator import Simulator, check_simulator
 from lagfluid.models.trainable import Trainable
 from lagfluid.models.training_range import RangeWarner
-from lagfluid.neighbors import edge_vectors, radius_graph
+from lagfluid.neighbors import edge_vectors, pair_kernels, radius_graph
 from lagfluid.physics.mps import CollisionRule, ExactPressure
 from lagfluid.physics.operators import kernel
 from lagfluid.physics.scheme import SplitStepSimulator

@@ -18,7 +18,7 @@ REPO = Path(__file__).resolve().parents[1]
 PLANTS = [
     (
         "Verlet list rebuilt after a whole skin, not half",
-        "lagfluid/neighbor_list.py",
+        "lagfluid/neighbors/verlet.py",
         ".norm(dim=1).max() > 0.5 * self.skin",
         ".norm(dim=1).max() > 1.0 * self.skin",
         "tests/test_mps.py::test_verlet_list_rebuilds_before_two_particles_can_close_a_skin",
@@ -74,7 +74,7 @@ PLANTS = [
     ),
     (
         "compiled cell search keeps pairs at exactly r",
-        "lagfluid/_pair_kernels_numba.py",
+        "lagfluid/neighbors/_numba.py",
         "if j != i and _squared_distance(pos, j, i) < bound2:",
         "if j != i and _squared_distance(pos, j, i) <= bound2:",
         "tests/test_neighbors.py::test_pairs_at_exactly_the_radius_are_not_neighbours",
@@ -422,7 +422,7 @@ PLANTS = [
     ),
     (
         "a cold kernel cache compiles in silence",
-        "lagfluid/pair_kernels.py",
+        "lagfluid/neighbors/pair_kernels.py",
         "    if where and not _announced:",
         "    if False:",
         "tests/test_progress.py::test_a_cold_kernel_cache_is_announced_once_before_compiling",
@@ -665,7 +665,7 @@ PLANTS = [
     ),
     (
         "threads: Numba's pool started inside the first kernel (threads=1 runs on every core)",
-        "lagfluid/pair_kernels.py",
+        "lagfluid/neighbors/pair_kernels.py",
         "    parallel._launch_threads()  # a no-op once started\n    torch.set_num_threads(threads)",
         "    pass",
         "tests/test_pair_kernels.py::test_the_first_compiled_search_keeps_torchs_thread_count",
@@ -753,7 +753,7 @@ PLANTS = [
     (
         "the architecture document names a file that is not there (a module moved, the document not)",
         "docs/architecture.md",
-        "(`VerletNeighborList`, `lagfluid/neighbor_list.py`)",
+        "(`VerletNeighborList`, `lagfluid/neighbors/verlet.py`)",
         "(`VerletNeighborList`, `lagfluid/neighbors/verlet_list.py`)",
         "tests/test_docs.py::test_every_path_in_the_architecture_document_exists",
     ),
@@ -917,31 +917,31 @@ PLANTS = [
         "loss_window=[]",
         "tests/test_train.py::test_one_iteration_is_one_adam_step_at_its_rate_logged_and_saved_for_the_resume",
     ),
-    # issue 36, item 2: backends chosen once (lagfluid.pair_kernels.backend_for), each kernel's two bodies
+    # issue 36, item 2: backends chosen once (pair_kernels.backend_for), each kernel's two bodies
     (
         "backends: the dispatch always picks the torch body (the compiled kernels never run)",
-        "lagfluid/pair_kernels.py",
+        "lagfluid/neighbors/pair_kernels.py",
         "        return kernel.compiled\n",
         "        return kernel.torch\n",
         "tests/test_kernel_dispatch.py::test_cpu_float32_and_float64_take_the_compiled_body_where_numba_is",
     ),
     (
         "backends: the dispatch sends float16 to the compiled kernels (written for float32 and float64)",
-        "lagfluid/pair_kernels.py",
+        "lagfluid/neighbors/pair_kernels.py",
         "and (t.dtype in _COMPILED_FLOATS or not t.dtype.is_floating_point)",
         "and True",
         "tests/test_kernel_dispatch.py::test_other_devices_dtypes_and_autograd_take_the_torch_body",
     ),
     (
         "backends: the dispatch sends tensors that need a gradient to the compiled kernels",
-        "lagfluid/pair_kernels.py",
+        "lagfluid/neighbors/pair_kernels.py",
         "and not (t.requires_grad and torch.is_grad_enabled())",
         "and True",
         "tests/test_kernel_dispatch.py::test_other_devices_dtypes_and_autograd_take_the_torch_body",
     ),
     (
         "backends: the torch body of select_below keeps the pairs at exactly the radius",
-        "lagfluid/neighbor_list.py",
+        "lagfluid/neighbors/pair_kernels.py",
         "    index = torch.nonzero(dist < radius).flatten()\n",
         "    index = torch.nonzero(dist <= radius).flatten()\n",
         "tests/test_kernel_dispatch.py::test_both_bodies_give_the_worked_out_numbers[select_below]",

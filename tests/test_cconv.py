@@ -548,7 +548,7 @@ def test_a_resumed_training_ends_with_the_uninterrupted_runs_weights(step_data, 
 
 
 def test_compiled_blocks_of_kernel_cells_equal_the_torch_selection(monkeypatch):
-    from lagfluid import pair_kernels
+    from lagfluid.neighbors import pair_kernels
 
     if not pair_kernels.available():
         pytest.skip("numba not installed")

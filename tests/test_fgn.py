@@ -281,8 +281,8 @@ def test_compact_nodes_keeps_the_fluid_rows_and_renumbers_sources():
 
 
 def test_induced_subgraph_compiled_and_torch_paths_agree(monkeypatch):
-    from lagfluid import pair_kernels
     from lagfluid.models.fgn.learned_stages import induced_subgraph
+    from lagfluid.neighbors import pair_kernels
 
     gen = torch.Generator().manual_seed(4)
     edge_index = torch.randint(0, 50, (2, 400), generator=gen)
@@ -895,7 +895,7 @@ def test_graphs_derived_across_a_rollout_equal_fresh_filters(monkeypatch, model)
     """Every graph a step hands a stage (filtered, sliced, derived, or carried over from the last step's
     x**) equals a fresh exact filter at its positions; and the carry saves filters: FGN filters the Verlet
     list once a step (at x**), MPS twice (x^n at the Laplacian's radius cannot be derived)."""
-    from lagfluid.neighbor_list import VerletNeighborList
+    from lagfluid.neighbors.verlet import VerletNeighborList
     from lagfluid.physics.step_context import StepContext
 
     cfg = _compose(f"model={model}", "scene=dam_small", "scene.params.gravity=[0,0,-60]")  # fast: big moves

@@ -1,4 +1,4 @@
-"""Backends are chosen in one place: :func:`lagfluid.pair_kernels.backend_for`, per kernel and tensors.
+"""Backends are chosen in one place, per kernel and tensors: ``pair_kernels.backend_for``.
 
 Each kernel with a compiled (Numba) and a torch body is registered once; the dispatch gives the compiled body
 for CPU float32/float64 tensors that need no gradient where Numba is installed, the torch body otherwise.
@@ -15,8 +15,9 @@ import pytest
 import torch
 
 import baselines.cconv.conv as cconv_conv
-from lagfluid import neighbors, pair_kernels
-from lagfluid.neighbor_list import VerletNeighborList
+from lagfluid import neighbors
+from lagfluid.neighbors import pair_kernels
+from lagfluid.neighbors.verlet import VerletNeighborList
 from lagfluid.physics import operators as ops
 from lagfluid.physics.ppe import system as ppe_system
 from lagfluid.scenes import build_scene

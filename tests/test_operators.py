@@ -9,7 +9,7 @@ from functools import cache
 import pytest
 import torch
 
-from lagfluid import pair_kernels
+from lagfluid.neighbors import csr, pair_kernels
 from lagfluid.physics import operators as ops
 
 L0 = 0.05
@@ -737,7 +737,7 @@ def test_compiled_kernel_equals_the_torch_operations(monkeypatch, dtype):
 def test_the_check_pass_fills_the_row_pointer_searchsorted_would(n, e):
     import numpy as np
 
-    kern = ops._operator_kernels()
+    kern = pair_kernels.load(csr.NUMBA)
     rng = np.random.default_rng(n + e)
     # empty rows at both ends and in the middle (targets drawn from a part of 0..n-1), several chunks
     dst = np.sort(rng.integers(n // 3, max(n // 3 + 1, n - n // 4), e))

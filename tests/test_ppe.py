@@ -10,7 +10,7 @@ import pytest
 import torch
 from scipy.spatial import cKDTree
 
-from lagfluid import pair_kernels
+from lagfluid.neighbors import pair_kernels
 from lagfluid.physics.ppe import PPEInfo, assemble_ppe, ppe_residual, ppe_source, solve_ppe
 from lagfluid.physics.ppe import solve as ppe_solve
 from lagfluid.physics.ppe import system as ppe_system

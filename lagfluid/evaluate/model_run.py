@@ -21,7 +21,7 @@ from lagfluid.data.store import TrajectoryWriter, stored_dtype
 from lagfluid.errors import RolloutError
 from lagfluid.metrics import normalized_mae
 from lagfluid.models.simulator import Simulator
-from lagfluid.neighbor_list import VerletNeighborList
+from lagfluid.neighbors.verlet import VerletNeighborList
 from lagfluid.physics.mps import ExactAdvection
 from lagfluid.physics.reference import exact_context, mps_constants, mps_neighbor_list, ppe_relative_residual
 from lagfluid.physics.settings import MPSConstants, SolverSettings

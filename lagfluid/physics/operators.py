@@ -19,15 +19,15 @@ The MPS weight (Koshizuka & Oka 1996) is ``w(r) = re / r - 1`` for ``1e-8 < r < 
 from __future__ import annotations
 
 from types import ModuleType
-from typing import Any
 
 import numpy as np
 import torch
 from torch import Tensor
 
-from lagfluid import pair_kernels
-from lagfluid.neighbors import edge_vectors
-from lagfluid.pair_kernels import backend_for
+from lagfluid.neighbors import pair_kernels
+from lagfluid.neighbors.csr import sorted_rows
+from lagfluid.neighbors.geometry import edge_vectors
+from lagfluid.neighbors.pair_kernels import backend_for
 from lagfluid.state import ParticleType
 
 __all__ = [
@@ -614,18 +614,6 @@ def _from_sources(
     return edge_index.index_select(1, keep), picked
 
 
-def _sorted_rows(edge_index: Tensor, num_sources: int, num_nodes: int) -> tuple[Any, Any, Any] | None:
-    """``(dst, src, row_ptr)`` numpy arrays of a graph sorted by target, or None (unsorted, out of range)."""
-    kern = _operator_kernels()
-    dst, src = edge_index[1].contiguous().numpy(), edge_index[0].contiguous().numpy()
-    pair_kernels.set_threads()
-    row_ptr = np.empty(num_nodes + 1, dtype=np.int64)
-    descents, outside = kern.check_edges(dst, src, num_sources, num_nodes, row_ptr)
-    if descents or outside:
-        return None  # unsorted, or indices out of range (the torch path reports those)
-    return dst, src, row_ptr
-
-
 def _min_gradient_compiled(
     pos: Tensor,
     edge_index: Tensor,
@@ -648,7 +636,7 @@ def _min_gradient_compiled(
     args = (pos, edge_index, pressure, re, n0, dim, include_self, size, geometry, sources)
     if isinstance(n0, Tensor) or pressure.dtype != pos.dtype or size > pressure.shape[0]:
         return _min_gradient_torch(*args)
-    rows = _sorted_rows(edge_index, pressure.shape[0], size)
+    rows = sorted_rows(edge_index, pressure.shape[0], size)
     if rows is None:
         return _min_gradient_torch(*args)
     _, src, row_ptr = rows
@@ -689,7 +677,7 @@ def _number_density_compiled(
     As :func:`_laplacian_compiled`: edges sorted by target (the torch body takes others); the torch body's
     numbers to the bit without the kernel's ~6 elementwise passes over the edges and the scatter.
     """
-    rows = _sorted_rows(edge_index, num_sources, num_nodes)
+    rows = sorted_rows(edge_index, num_sources, num_nodes)
     if rows is None:
         return _number_density_torch(edge_index, dist, re, num_nodes, num_sources)
     d = dist.detach().contiguous().numpy()
@@ -720,7 +708,7 @@ def _laplacian_compiled(
     scale = 2.0 * dim / (lam * n0_lap)
     takes = not isinstance(scale, Tensor) and values.dim() in (1, 2) and values.dtype == dist.dtype
     rows = (
-        _sorted_rows(edge_index, values.shape[0], num_nodes)
+        sorted_rows(edge_index, values.shape[0], num_nodes)
         if takes and num_nodes <= values.shape[0]
         else None
     )

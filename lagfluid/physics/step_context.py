@@ -15,8 +15,8 @@ import torch
 from torch import Tensor
 
 from lagfluid.errors import ConfigError
-from lagfluid.neighbor_list import Graph, VerletNeighborList
-from lagfluid.pair_kernels import backend_for
+from lagfluid.neighbors.pair_kernels import backend_for
+from lagfluid.neighbors.verlet import Graph, VerletNeighborList
 from lagfluid.physics.settings import MPSConstants, SolverSettings
 from lagfluid.physics.timing import StageTimer
 from lagfluid.state import ParticleState, SceneParams
@@ -217,7 +217,7 @@ class StepContext:
         ``radius + 2 moved`` then (boundaries are static), so it is in the anchor: one pass over those pairs
         replaces a pass over the Verlet candidates. Fluid-target requests always can. All-target ones need
         an all-target anchor, and the walls that are targets now (those within ``wall_hops`` hops of the
-        fluid *now*, see :mod:`lagfluid.neighbor_list`) to be among its targets, or to have no edge within
+        fluid *now*, see :mod:`lagfluid.neighbors.verlet`) to be among its targets, or to have no edge within
         ``radius``; walls that stopped being targets are dropped.
         """
         full = anchor.graph

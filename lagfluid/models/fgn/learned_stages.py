@@ -13,10 +13,10 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from lagfluid import pair_kernels
 from lagfluid.device_constants import device_constant
 from lagfluid.models.fgn.inputs import advection_inputs, collision_inputs, pressure_inputs
 from lagfluid.models.fgn.networks import AdvectionNet, CollisionNet, PressureNet
+from lagfluid.neighbors import pair_kernels
 from lagfluid.physics import operators as ops
 from lagfluid.physics.settings import SolverSettings
 from lagfluid.physics.step_context import StepContext

@@ -57,8 +57,8 @@ import torch
 from scipy.sparse.csgraph import connected_components
 from torch import Tensor
 
-from lagfluid import pair_kernels
-from lagfluid.pair_kernels import backend_for
+from lagfluid.neighbors import pair_kernels
+from lagfluid.neighbors.pair_kernels import backend_for
 
 logger = logging.getLogger(__name__)
 

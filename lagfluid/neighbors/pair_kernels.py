@@ -1,27 +1,28 @@
-"""Compiled CPU kernels (Numba) that filter candidate pairs by distance in one pass.
-
-Why our own kernels: the Verlet list (:mod:`lagfluid.neighbor_list`) filters every candidate pair by its
-current distance twice per MPS step, and as torch operations that pass materialises ``pos[src]``,
-``pos[dst]``, ``rel``, ``rel * rel``, the mask and the ``nonzero`` index (each 1-10 M rows) before gathering
-the kept rows again. These kernels read each candidate once from cache-resident positions and write only
-the kept pairs (measurements: ``benchmarks/results/neighbors_notes.md``). Neither PyG nor SciPy filters an
-existing pair list.
-
-The results are *bit-identical* to the torch path (:func:`lagfluid.neighbors.edge_vectors` followed by
-``dist < radius``): the same float operations in the same order (``sqrt((x*x + y*y) + z*z)`` in the
-positions' dtype, no fused multiply-add, no fast-math) and the radius rounded to that dtype as torch
-rounds a Python scalar. The kept pairs keep their input order, so target-sorted input stays sorted.
-
-The torch path remains for CUDA tensors, for positions that require grad, and where Numba is not
-installed (:func:`available`).
+"""Kernels over particle pairs with a compiled (Numba, CPU) and a torch body, and where a backend is chosen.
 
 Backends are chosen in one place. Every computation with a compiled and a torch body, here and in the
 operators, the PPE assembly, FGN's and CConv's stages, is a :class:`Kernel` registered by name
 (:func:`register`); an algorithm asks :func:`backend_for` for the body that serves its tensors and calls it,
 without a branch of its own. The compiled body serves CPU tensors in float32 or float64 that need no
-gradient, when Numba is installed (:func:`applies`); the torch body every other case. A compiled body
-may hand input it does not take (edges not sorted by target, a handful of pairs) to its torch body: both
-give the same numbers.
+gradient, when Numba is installed (:func:`applies`); the torch body every other case (CUDA, autograd, no
+Numba). A compiled body may hand input it does not take (edges not sorted by target, a handful of pairs)
+to its torch body: both give the same numbers.
+
+The pair filters here (:func:`pairs_within`, :func:`select_below`, :func:`induced_edges`, the cell list of
+:func:`cell_search`): the Verlet list (:mod:`lagfluid.neighbors.verlet`) filters every candidate pair by its
+current distance twice per MPS step, and as torch operations that pass materialises ``pos[src]``,
+``pos[dst]``, ``rel``, ``rel * rel``, the mask and the ``nonzero`` index (each 1-10 M rows) before gathering
+the kept rows again. The compiled bodies read each candidate once from cache-resident positions and write
+only the kept pairs (measurements: ``benchmarks/results/neighbors_notes.md``). Neither PyG nor SciPy filters
+an existing pair list.
+
+The results are *bit-identical* to the torch bodies (:func:`lagfluid.neighbors.geometry.edge_vectors`
+followed by ``dist < radius``): the same float operations in the same order (``sqrt((x*x + y*y) + z*z)``
+in the positions' dtype, no fused multiply-add, no fast-math) and the radius rounded to that dtype as torch
+rounds a Python scalar. The kept pairs keep their input order, so target-sorted input stays sorted.
+
+The torch bodies remain for CUDA tensors, for positions that require grad, and where Numba is not
+installed (:func:`available`).
 """
 
 from __future__ import annotations
@@ -37,6 +38,8 @@ from typing import Any
 import numpy as np
 import torch
 from torch import Tensor
+
+from lagfluid.neighbors.geometry import edge_vectors, take_edges
 
 log = logging.getLogger(__name__)
 
@@ -98,7 +101,7 @@ def uncached_kernels(kernels: ModuleType) -> str | None:
 
 def _compiled() -> ModuleType | None:
     """The pair-filter kernels, or None without Numba."""
-    return load("lagfluid._pair_kernels_numba")
+    return load("lagfluid.neighbors._numba")
 
 
 def available() -> bool:
@@ -297,6 +300,47 @@ def select_below(
     return torch.from_numpy(out), torch.from_numpy(out_rel), torch.from_numpy(out_dist)
 
 
+def _select_below_torch(
+    edge_index: Tensor, rel: Tensor, dist: Tensor, radius: float
+) -> tuple[Tensor, Tensor, Tensor]:
+    """:func:`select_below` in torch operations: the edges with ``dist < radius``.
+
+    nonzero + index_select rather than boolean indexing: faster on the CPU for (E, 3) arrays.
+    """
+    index = torch.nonzero(dist < radius).flatten()
+    return take_edges(edge_index, index), rel.index_select(0, index), dist.index_select(0, index)
+
+
+def _pairs_within_torch(
+    pos: Tensor,
+    edge_lists: Sequence[Tensor],
+    radius: float,
+    target_masks: Sequence[Tensor | None] | None = None,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """:func:`pairs_within` in torch operations (any device, differentiable).
+
+    Per candidate list ``(2, E_k)``: its geometry at ``pos`` (N, D), the pairs with ``dist < radius`` (and
+    ``target_mask[i]`` where a mask is given), in input order; the lists' results concatenated.
+    """
+    masks = list(target_masks) if target_masks is not None else [None] * len(edge_lists)
+    parts = []
+    for edges, target_mask in zip(edge_lists, masks, strict=True):
+        rel, dist = edge_vectors(pos, edges)
+        keep = dist < radius
+        if target_mask is not None:
+            keep &= target_mask.index_select(0, edges[1])
+        index = torch.nonzero(keep).flatten()
+        parts.append((take_edges(edges, index), rel.index_select(0, index), dist.index_select(0, index)))
+    if len(parts) == 1:
+        return parts[0]
+    edges, rel, dist = zip(*parts, strict=True)
+    return torch.cat(edges, dim=1), torch.cat(rel), torch.cat(dist)
+
+
+register("select_below", compiled=select_below, torch=_select_below_torch)
+register("pairs_within", compiled=pairs_within, torch=_pairs_within_torch)
+
+
 def induced_edges(edge_index: Tensor, keep: Tensor, local: Tensor) -> tuple[Tensor, Tensor]:
     """The edges between kept nodes, renumbered, and where they were (order kept): one compiled pass.
 
@@ -341,8 +385,8 @@ class CellList:
 
     Each query scans the 5^3 cells around a particle in parallel and cuts at the exact squared threshold
     of torch's ``sqrt`` (:func:`_squared_bound`), so its pairs are those of every other backend of
-    :func:`lagfluid.neighbors.radius_graph`. Build with :meth:`build` (None when the particles' box holds
-    too many cells for the dense cell table: far-flung particles; use another search then).
+    :func:`lagfluid.neighbors.search.radius_graph`. Build with :meth:`build` (None when the particles' box
+    holds too many cells for the dense cell table: far-flung particles; use another search then).
     """
 
     def __init__(self, pos: np.ndarray, cell: np.ndarray, order: np.ndarray, cell_start: np.ndarray,
@@ -421,7 +465,7 @@ class CellList:
 def cell_search(pos: Tensor, radius: float, batch: Tensor | None, receivers: Tensor) -> Tensor | None:
     """Every pair (i receiver, j any particle, i != j, same graph) with torch's ``|x_j - x_i| < radius``.
 
-    The ``numba`` backend of :func:`lagfluid.neighbors.radius_graph` (see :class:`CellList`).
+    The ``numba`` backend of :func:`lagfluid.neighbors.search.radius_graph` (see :class:`CellList`).
 
     Args:
         pos: (N, D) CPU positions, D in {2, 3}.

@@ -6,8 +6,8 @@ Searching at every position set would repeat the neighbour search three times pe
 keep *candidate* pairs within ``cutoff + skin`` and filter them by the true current distance; the list
 is rebuilt only when some fluid particle has moved more than ``skin / 2`` since the last build, which
 guarantees that every pair within ``cutoff`` is a candidate. The result is exact, not approximate. On
-the CPU the filter is one compiled pass per candidate list (:mod:`lagfluid.pair_kernels`, bit-identical
-to the torch operations used on CUDA and for positions that require grad).
+the CPU the filter is one compiled pass per candidate list (:mod:`lagfluid.neighbors.pair_kernels`,
+bit-identical to the torch operations used on CUDA and for positions that require grad).
 
 Receivers (graph targets) are the fluid particles and the wall particles within ``wall_hops`` hops of
 the fluid, a hop being the cutoff (3.1 l0, the Laplacian radius): walls with fluid within 3.1 l0, then
@@ -23,75 +23,18 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import torch
 from torch import Tensor
 
-from lagfluid import pair_kernels
-from lagfluid.neighbors import edge_vectors, radius_graph
-from lagfluid.pair_kernels import backend_for
+from lagfluid.neighbors import pair_kernels
+from lagfluid.neighbors.geometry import edge_vectors, take_edges
+from lagfluid.neighbors.pair_kernels import backend_for
+from lagfluid.neighbors.search import radius_graph
 from lagfluid.state import ParticleType
 
 log = logging.getLogger(__name__)
-
-
-def take_edges(edge_index: Tensor, index: Tensor, out: Tensor | None = None) -> Tensor:
-    """``edge_index[:, index]``: the (2, K) columns ``index`` (K,) of a (2, E) edge index.
-
-    One 1-D gather per row, optionally into ``out`` (2, K) (a column slice of a larger edge index): on the
-    CPU ``index_select`` along dim 1 of a (2, E) tensor is slower (``benchmarks/results/neighbors_notes.md``).
-    """
-    if out is None:
-        out = edge_index.new_empty((2, index.numel()))
-    for row in range(2):
-        if out[row].is_contiguous():
-            torch.index_select(edge_index[row], 0, index, out=out[row])
-        else:
-            out[row].copy_(edge_index[row].index_select(0, index))
-    return out
-
-
-def _select_below_torch(
-    edge_index: Tensor, rel: Tensor, dist: Tensor, radius: float
-) -> tuple[Tensor, Tensor, Tensor]:
-    """:func:`lagfluid.pair_kernels.select_below` in torch operations: the edges with ``dist < radius``.
-
-    nonzero + index_select rather than boolean indexing: faster on the CPU for (E, 3) arrays.
-    """
-    index = torch.nonzero(dist < radius).flatten()
-    return take_edges(edge_index, index), rel.index_select(0, index), dist.index_select(0, index)
-
-
-def _pairs_within_torch(
-    pos: Tensor,
-    edge_lists: Sequence[Tensor],
-    radius: float,
-    target_masks: Sequence[Tensor | None] | None = None,
-) -> tuple[Tensor, Tensor, Tensor]:
-    """:func:`lagfluid.pair_kernels.pairs_within` in torch operations (any device, differentiable).
-
-    Per candidate list ``(2, E_k)``: its geometry at ``pos`` (N, D), the pairs with ``dist < radius`` (and
-    ``target_mask[i]`` where a mask is given), in input order; the lists' results concatenated.
-    """
-    masks = list(target_masks) if target_masks is not None else [None] * len(edge_lists)
-    parts = []
-    for edges, target_mask in zip(edge_lists, masks, strict=True):
-        rel, dist = edge_vectors(pos, edges)
-        keep = dist < radius
-        if target_mask is not None:
-            keep &= target_mask.index_select(0, edges[1])
-        index = torch.nonzero(keep).flatten()
-        parts.append((take_edges(edges, index), rel.index_select(0, index), dist.index_select(0, index)))
-    if len(parts) == 1:
-        return parts[0]
-    edges, rel, dist = zip(*parts, strict=True)
-    return torch.cat(edges, dim=1), torch.cat(rel), torch.cat(dist)
-
-
-pair_kernels.register("select_below", compiled=pair_kernels.select_below, torch=_select_below_torch)
-pair_kernels.register("pairs_within", compiled=pair_kernels.pairs_within, torch=_pairs_within_torch)
 
 
 @dataclass
@@ -152,7 +95,7 @@ class VerletNeighborList:
     Args:
         cutoff: the largest radius any stage will ask for, metres.
         skin: extra margin, metres; larger = fewer rebuilds, more candidate pairs to filter.
-        backend: neighbour-search backend passed to :func:`lagfluid.neighbors.radius_graph`.
+        backend: neighbour-search backend passed to :func:`lagfluid.neighbors.search.radius_graph`.
     """
 
     def __init__(self, cutoff: float, skin: float, backend: str = "auto", wall_hops: int | None = 2) -> None:
@@ -317,7 +260,7 @@ class VerletNeighborList:
         return backend_for("verlet_graph", pos)(self, pos, ptype, radius, with_walls)
 
     def _graph_compiled(self, pos: Tensor, ptype: Tensor, radius: float, with_walls: bool) -> Graph:
-        """:meth:`graph` in one compiled pass per candidate list (see :mod:`lagfluid.pair_kernels`)."""
+        """:meth:`graph` in one compiled pass per candidate list (:mod:`lagfluid.neighbors.pair_kernels`)."""
         into_fluid = self.candidates[:, : self._fluid_prefix]
         if not with_walls:
             return Graph(*pair_kernels.pairs_within(pos, [into_fluid], radius), radius)
