@@ -34,11 +34,11 @@ from omegaconf import OmegaConf
 from torch.utils._python_dispatch import TorchDispatchMode
 
 from benchmarks.provenance import provenance, write_results
-from lagfluid.config import at_simulator_time_step, build_initial_state, build_simulator, run_device
 from lagfluid.errors import ConfigError
 from lagfluid.neighbors import pair_kernels, search
 from lagfluid.rollout import rollout
 from lagfluid.run import CONF_DIR
+from lagfluid.tasks.config import at_simulator_time_step, build_initial_state, build_simulator, run_device
 
 RESULTS = Path(__file__).resolve().parent / "results"
 

@@ -32,26 +32,10 @@ LAYERS: dict[str, tuple[str, ...]] = {
     "plugins": ("baselines", "baselines.*", "tests.plugins.*"),
     # the public plugin surface: names re-exported from the layers below, never from the tasks
     "zoo": ("lagfluid.zoo",),
-    "tasks": (
-        "lagfluid.run",
-        "lagfluid.retrain",  # the retrain-everything sweep of lagfluid.run
-        "lagfluid.multirun_timer",  # a Hydra callback of every multirun
-        "lagfluid.config",  # a run's setup from its config, shared by the tasks
-        "lagfluid.outputs",  # a run's output files, replaced together
-        "lagfluid.locks",  # the locks on what a run writes, and their Hydra callback
-        "lagfluid.simulate",
-        "lagfluid.simulate_resume",  # task=simulate's resume=true checkpoints
-        "lagfluid.generate",
-        "lagfluid.generate.*",
-        "lagfluid.train",
-        "lagfluid.onpolicy_rounds",  # task=train's DAgger rounds (generate, then fine-tune)
-        "lagfluid.dagger_rounds",  # task=train's DAgger rounds of end-to-end models
-        "lagfluid.dagger_eval",  # their per-round dam rollout
-        "lagfluid.evaluate*",
-        "lagfluid.export",
-        "lagfluid.export.*",  # task=export: ParaView series and animations of rollout files
-        "lagfluid.distributed",  # task=train under torchrun
-    ),
+    # the two commands: python -m lagfluid.run (every task) and python -m lagfluid.retrain (a sweep of it)
+    "commands": ("lagfluid.run", "lagfluid.retrain"),
+    # task=<name> is lagfluid/tasks/<name>, beside their config, outputs, locks, resume and training rounds
+    "tasks": ("lagfluid.tasks", "lagfluid.tasks.*"),
     "rollout": ("lagfluid.rollout",),
     "models": ("lagfluid.models", "lagfluid.models.*"),
     "physics": ("lagfluid.physics", "lagfluid.physics.*"),
@@ -60,13 +44,10 @@ LAYERS: dict[str, tuple[str, ...]] = {
     "scenes": ("lagfluid.scenes", "lagfluid.scenes.*"),
     "data": ("lagfluid.data", "lagfluid.data.*"),
     "viz": ("lagfluid.viz",),
-    "operators": (
-        "lagfluid.physics.operators",
-        "lagfluid.physics._*_numba",
-        "lagfluid.neighbors",
-        "lagfluid.neighbors.*",
-        "lagfluid.integrate",
-    ),
+    # the MPS operators (carved out of physics/: the data, the scenes and the metrics use them) and the update
+    "operators": ("lagfluid.physics.operators", "lagfluid.physics._*_numba", "lagfluid.integrate"),
+    # radius graphs, the Verlet list, edge geometry, CSR matrices, compiled pair kernels and their dispatch
+    "neighbors": ("lagfluid.neighbors", "lagfluid.neighbors.*"),
     # plugin_configs: the config folders (core and plugins') and the resolver lagfluid/__init__ registers
     # (stdlib and errors only)
     # progress: the rollout's and the trainer's bar or log lines (tqdm and logging only)
@@ -91,25 +72,28 @@ MAY_IMPORT: dict[str, frozenset[str]] = {
     "benchmarks": frozenset(LAYERS) - {"benchmarks"},
     # what a plugin needs of lagfluid is re-exported there; a plugin never imports another's internals
     "plugins": frozenset({"zoo"}),
-    # nothing of the tasks (a plugin is no task), nothing in lagfluid imports the zoo
-    "zoo": frozenset(_LAGFLUID) - {"zoo", "tasks"},
-    "tasks": frozenset(_LAGFLUID) - {"zoo", "tasks"},
+    # nothing of the tasks or commands (a plugin is no task), nothing in lagfluid imports the zoo
+    "zoo": frozenset(_LAGFLUID) - {"zoo", "commands", "tasks"},
+    "commands": frozenset(_LAGFLUID) - {"zoo", "commands"},
+    "tasks": frozenset(_LAGFLUID) - {"zoo", "commands", "tasks"},
     # the loop and guard only: files, metrics and the registry are the tasks'
     "rollout": frozenset({"models", "base"}),
     # a model's trainables provide their datasets, hence data
-    "models": frozenset({"physics", "data", "operators", "base"}),
+    "models": frozenset({"physics", "data", "operators", "neighbors", "base"}),
     # physics never imports models
-    "physics": frozenset({"operators", "base"}),
+    "physics": frozenset({"operators", "neighbors", "base"}),
     # simulator-neutral: no models, no split-step stages, no MPS or PPE references
-    "metrics": frozenset({"operators", "base"}),
+    "metrics": frozenset({"operators", "neighbors", "base"}),
     # module level only: built-ins are loaded lazily by string, inside functions
     "registry": frozenset({"base"}),
     # a scene may be read from a stored trajectory (scene=trajectory)
-    "scenes": frozenset({"data", "operators", "base"}),
+    "scenes": frozenset({"data", "operators", "neighbors", "base"}),
     # formats only: never tasks, rollout, models or physics
-    "data": frozenset({"operators", "base"}),
+    "data": frozenset({"operators", "neighbors", "base"}),
     "viz": frozenset({"base"}),
-    "operators": frozenset({"base"}),
+    "operators": frozenset({"neighbors", "base"}),
+    # the search knows particles and their types, nothing of physics or models
+    "neighbors": frozenset({"base"}),
     "base": frozenset(),
 }
 
@@ -494,14 +478,25 @@ def test_checker_holds_plugins_to_the_zoo_and_lets_benchmarks_import_anything():
 
 def test_checker_forbids_the_zoo_to_import_tasks_and_tasks_to_import_the_zoo():
     sources = {
-        "lagfluid/zoo.py": "from lagfluid.config import scene_params\n",
-        "lagfluid/config.py": "",
-        "lagfluid/run.py": "import lagfluid.zoo\n",
+        "lagfluid/zoo.py": "from lagfluid.tasks.config import scene_params\nimport lagfluid.run\n",
+        "lagfluid/tasks/config.py": "",
+        "lagfluid/tasks/simulate.py": "import lagfluid.zoo\nfrom lagfluid import run\n",
+        "lagfluid/run.py": "def main():\n    from lagfluid.tasks import simulate\n    import lagfluid.zoo\n",
     }
     found = {(v.importer, v.imported): v.rule for v in check(sources)}
-    assert set(found) == {("lagfluid.zoo", "lagfluid.config"), ("lagfluid.run", "lagfluid.zoo")}
-    assert "layer 'zoo' may not import layer 'tasks'" in found[("lagfluid.zoo", "lagfluid.config")]
-    assert "layer 'tasks' may not import layer 'zoo'" in found[("lagfluid.run", "lagfluid.zoo")]
+    assert set(found) == {
+        ("lagfluid.zoo", "lagfluid.tasks.config"),
+        ("lagfluid.zoo", "lagfluid.run"),
+        ("lagfluid.tasks.simulate", "lagfluid.zoo"),
+        ("lagfluid.tasks.simulate", "lagfluid.run"),
+        ("lagfluid.run", "lagfluid.zoo"),
+    }
+    assert "layer 'zoo' may not import layer 'tasks'" in found[("lagfluid.zoo", "lagfluid.tasks.config")]
+    assert "layer 'zoo' may not import layer 'commands'" in found[("lagfluid.zoo", "lagfluid.run")]
+    task = "lagfluid.tasks.simulate"
+    assert "layer 'tasks' may not import layer 'zoo'" in found[(task, "lagfluid.zoo")]
+    assert "layer 'tasks' may not import layer 'commands'" in found[(task, "lagfluid.run")]
+    assert "layer 'commands' may not import layer 'zoo'" in found[("lagfluid.run", "lagfluid.zoo")]
 
 
 def test_circles_are_found_through_function_level_imports_as_a_shortest_loop():
@@ -542,7 +537,9 @@ def test_layer_of_prefers_the_most_specific_pattern():
     assert layer_of("lagfluid.physics.operators") == "operators"
     assert layer_of("lagfluid.physics._ppe_numba") == "operators"
     assert layer_of("lagfluid.physics.ppe") == "physics"
-    assert layer_of("lagfluid.evaluate_tables") == "tasks"
+    assert layer_of("lagfluid.tasks.evaluate.task") == "tasks"
+    assert layer_of("lagfluid.neighbors.pair_kernels") == "neighbors"
+    assert layer_of("lagfluid.evaluate_tables") is None  # a module at the root in no layer
     assert layer_of("lagfluid.trainables") is None
 
 

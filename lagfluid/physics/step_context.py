@@ -155,7 +155,8 @@ class StepContext:
         """Like :meth:`record`, but later records of these fields in this step leave them as they are.
 
         For a stage that moves the particles by one rule and labels the step by another: the step then
-        records the stage's output under the same name (on-policy datasets, :mod:`lagfluid.generate.policy`).
+        records the stage's output under the same name (on-policy datasets,
+        :mod:`lagfluid.tasks.generate.policy`).
         """
         self.record(**arrays)
         self._labelled.update(arrays)

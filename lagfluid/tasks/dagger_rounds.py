@@ -33,11 +33,11 @@ from typing import Any
 
 from omegaconf import DictConfig, open_dict
 
-from lagfluid.dagger_eval import dam_result, scene_config, write_summary
 from lagfluid.errors import ConfigError
 from lagfluid.models.exact_after import ExactAfterOptions
-from lagfluid.onpolicy_rounds import dataset_generate_config, generate_scenes, round_dir
 from lagfluid.registry import get_trainables
+from lagfluid.tasks.dagger_eval import dam_result, scene_config, write_summary
+from lagfluid.tasks.onpolicy_rounds import dataset_generate_config, generate_scenes, round_dir
 
 log = logging.getLogger(__name__)
 
@@ -170,8 +170,8 @@ def run_dagger(
         ConfigError: a network of the model missing from the start weights, a split-step model, or exact
             stages after the model.
     """
-    from lagfluid.generate.expert import end_to_end_simulator, generate_expert, train_scenes
-    from lagfluid.generate.spec import DataSpec
+    from lagfluid.tasks.generate.expert import end_to_end_simulator, generate_expert, train_scenes
+    from lagfluid.tasks.generate.spec import DataSpec
 
     model, names = str(cfg.model.name), list(get_trainables(str(cfg.model.name), cfg))
     start = settings.weights(out_dir, 0)

@@ -31,15 +31,6 @@ import torch
 from omegaconf import DictConfig
 
 import lagfluid
-from lagfluid.config import (
-    apply_threads,
-    at_simulator_time_step,
-    build_simulator,
-    check_run_memory,
-    git_commit,
-    run_attributes,
-    run_guard,
-)
 from lagfluid.data.expert_windows import EXPERT, EXPERT_FORMAT_VERSION, LABELS
 from lagfluid.data.layout import (
     DATASET_FORMAT,
@@ -54,11 +45,7 @@ from lagfluid.data.layout import (
 )
 from lagfluid.data.store import TrajectoryWriter, stored_dtype
 from lagfluid.errors import ConfigError, RolloutError, SceneError
-from lagfluid.generate.metadata import write_json_atomic
-from lagfluid.generate.scene import scene_done
-from lagfluid.generate.spec import DataSpec
 from lagfluid.integrate import velocity_from_positions
-from lagfluid.locks import hold_outputs
 from lagfluid.models.exact_after import ExactAfter
 from lagfluid.models.mps_simulator import build_mps
 from lagfluid.models.simulator import Simulator
@@ -67,6 +54,19 @@ from lagfluid.physics.settings import SolverSettings
 from lagfluid.rollout import Guard, rollout
 from lagfluid.scenes import build_scene
 from lagfluid.state import ParticleState
+from lagfluid.tasks.config import (
+    apply_threads,
+    at_simulator_time_step,
+    build_simulator,
+    check_run_memory,
+    git_commit,
+    run_attributes,
+    run_guard,
+)
+from lagfluid.tasks.generate.metadata import write_json_atomic
+from lagfluid.tasks.generate.scene import scene_done
+from lagfluid.tasks.generate.spec import DataSpec
+from lagfluid.tasks.locks import hold_outputs
 
 log = logging.getLogger(__name__)
 
