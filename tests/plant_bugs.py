@@ -960,6 +960,28 @@ PLANTS = [
         "    if True:\n        return _number_density_torch(",
         "tests/test_operators.py::test_compiled_number_density_equals_the_torch_operations",
     ),
+    # issue 36, item 1: folders by layer (lagfluid/tasks/, lagfluid/neighbors/) in the layer table
+    (
+        "layers: the table lists tasks/ module by module again (a new task module falls in no layer)",
+        "tests/test_layers.py",
+        '    "tasks": ("lagfluid.tasks", "lagfluid.tasks.*"),',
+        '    "tasks": ("lagfluid.tasks", "lagfluid.tasks.train", "lagfluid.tasks.simulate"),',
+        "tests/test_layers.py::test_the_table_states_folders",
+    ),
+    (
+        "layers: the neighbour search imports the physics (a search that reaches up)",
+        "lagfluid/neighbors/verlet.py",
+        "from lagfluid.state import ParticleType\n",
+        "from lagfluid.physics.operators import kernel\nfrom lagfluid.state import ParticleType\n",
+        "tests/test_layers.py::test_imports_point_one_way",
+    ),
+    (
+        "layers: a task imports the command module lagfluid.run",
+        "lagfluid/tasks/outputs.py",
+        "from lagfluid.data.store import ",
+        "from lagfluid.run import CONF_DIR\nfrom lagfluid.data.store import ",
+        "tests/test_layers.py::test_imports_point_one_way",
+    ),
 ]
 
 

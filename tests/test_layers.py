@@ -65,6 +65,10 @@ LAYERS: dict[str, tuple[str, ...]] = {
     ),
 }
 
+# Patterns that take modules out of a folder's layer into another (every other pattern names a module at
+# lagfluid's root, or a whole folder as "lagfluid.<folder>" and "lagfluid.<folder>.*": checked).
+CARVED_OUT: tuple[str, ...] = ("lagfluid.physics.operators", "lagfluid.physics._*_numba")
+
 _LAGFLUID = tuple(layer for layer in LAYERS if layer not in ("benchmarks", "plugins"))
 
 # What each layer may import besides its own modules.
@@ -324,6 +328,37 @@ def dead_patterns(sources: dict[str, str], layers: dict[str, tuple[str, ...]] = 
     ]
 
 
+def folder_problems(
+    sources: dict[str, str],
+    layers: dict[str, tuple[str, ...]] = LAYERS,
+    carved_out: tuple[str, ...] = CARVED_OUT,
+) -> list[str]:
+    """Where the table does not state lagfluid's folders as folders.
+
+    Each folder ``lagfluid/<f>/`` must be named as a whole, ``lagfluid.<f>`` and ``lagfluid.<f>.*`` in one
+    layer; every other pattern names a module at lagfluid's root, or is one of ``carved_out``. A table that
+    lists a folder's modules one by one (a new module would fall in no layer) is named here.
+    """
+    parts = [Path(path).with_suffix("").parts for path in sources if path.startswith("lagfluid/")]
+    folders = {p[1] for p in parts if len(p) > 2}
+    root_modules = {p[1] for p in parts if len(p) == 2 and p[1] != "__init__"}
+    layer_of_pattern = {pattern: layer for layer, patterns in layers.items() for pattern in patterns}
+    problems = [
+        f"lagfluid/{folder}/: name it as a folder, 'lagfluid.{folder}' and 'lagfluid.{folder}.*' in one layer"
+        for folder in sorted(folders)
+        if layer_of_pattern.get(f"lagfluid.{folder}") is None
+        or layer_of_pattern.get(f"lagfluid.{folder}") != layer_of_pattern.get(f"lagfluid.{folder}.*")
+    ]
+    for pattern, layer in layer_of_pattern.items():
+        name = pattern.split(".")
+        if name[0] != "lagfluid" or len(name) == 1 or pattern in carved_out:
+            continue
+        whole = name[1] in folders and (len(name) == 2 or name[2:] == ["*"])
+        if not whole and not (len(name) == 2 and name[1] in root_modules):
+            problems.append(f"{layer}: {pattern} names modules inside a folder, not the folder")
+    return problems
+
+
 def upward_rules(
     layers: dict[str, tuple[str, ...]] = LAYERS, may_import: dict[str, frozenset[str]] = MAY_IMPORT
 ) -> list[str]:
@@ -375,6 +410,11 @@ def test_no_import_circles():
 def test_every_pattern_names_a_module():
     dead = dead_patterns(package_sources())
     assert not dead, "patterns of LAYERS that match no module (remove them):\n" + "\n".join(dead)
+
+
+def test_the_table_states_folders():
+    problems = folder_problems(package_sources())
+    assert not problems, "LAYERS names lagfluid's folders by their modules:\n" + "\n".join(problems)
 
 
 def test_every_layer_has_its_rule_and_imports_only_layers_below_it():
@@ -533,6 +573,35 @@ def test_dead_patterns_and_upward_rules_are_named():
     ]
 
 
+def test_a_folder_listed_module_by_module_is_named():
+    sources = {
+        "lagfluid/__init__.py": "",
+        "lagfluid/run.py": "",
+        "lagfluid/tasks/__init__.py": "",
+        "lagfluid/tasks/train.py": "",
+        "lagfluid/tasks/simulate.py": "",
+        "lagfluid/neighbors/__init__.py": "",
+        "lagfluid/neighbors/verlet.py": "",
+    }
+    layers = {
+        "commands": ("lagfluid.run",),
+        "tasks": ("lagfluid.tasks", "lagfluid.tasks.train", "lagfluid.tasks.simulate"),
+        "neighbors": ("lagfluid.neighbors", "lagfluid.neighbors.*"),
+        "base": ("lagfluid",),
+    }
+    assert folder_problems(sources, layers, carved_out=()) == [
+        "lagfluid/tasks/: name it as a folder, 'lagfluid.tasks' and 'lagfluid.tasks.*' in one layer",
+        "tasks: lagfluid.tasks.train names modules inside a folder, not the folder",
+        "tasks: lagfluid.tasks.simulate names modules inside a folder, not the folder",
+    ]
+    layers["tasks"] = ("lagfluid.tasks", "lagfluid.tasks.*")
+    layers["operators"] = ("lagfluid.neighbors.verlet",)
+    assert folder_problems(sources, layers, carved_out=()) == [
+        "operators: lagfluid.neighbors.verlet names modules inside a folder, not the folder"
+    ]
+    assert folder_problems(sources, layers, carved_out=("lagfluid.neighbors.verlet",)) == []
+
+
 def test_layer_of_prefers_the_most_specific_pattern():
     assert layer_of("lagfluid.physics.operators") == "operators"
     assert layer_of("lagfluid.physics._ppe_numba") == "operators"
@@ -557,6 +626,7 @@ def main() -> int:
         ("violations", list(map(str, check(sources)))),
         ("circles", list(map(describe_circle, circles(sources)))),
         ("patterns naming no module", dead_patterns(sources)),
+        ("folders not named as folders", folder_problems(sources)),
         ("rules pointing up", upward_rules()),
     ]
     for title, lines in problems:
