@@ -28,8 +28,8 @@ from typing import Any
 
 from benchmarks.provenance import provenance, write_results
 from benchmarks.tables.config import compose_config
-from lagfluid.config import build_simulator, scene_params
 from lagfluid.models.exact_after import ExactAfterOptions
+from lagfluid.tasks.config import build_simulator, scene_params
 
 REPO = Path(__file__).resolve().parents[1]
 RESULTS = REPO / "benchmarks" / "results"

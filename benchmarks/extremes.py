@@ -12,7 +12,7 @@ particles), the rollout length (1 s and 10 s of the dam with the walls raised so
 float32 and float64, an initial velocity at the wall (wall tunnelling; past the Courant limit the guard
 refuses the start) and the start (a gap of one l0, touching at l0, overlapping a wall layer).
 
-Every run is ``task=evaluate`` (:mod:`lagfluid.evaluate`) of the simulator's Table 3 row file against
+Every run is ``task=evaluate`` (:mod:`lagfluid.tasks.evaluate`) of the simulator's Table 3 row file against
 the MPS reference at the same setting (on the dt axis: MPS at the scene's 2 ms, frames matched by time),
 through :class:`benchmarks.tables.bench.Bench`, so the numbers are the tables'. Verdicts (:func:`verdict`):
 

@@ -39,8 +39,8 @@ from hydra import compose, initialize_config_dir
 
 from benchmarks.fgn_one_step import HELD_OUT, one_step_rows
 from benchmarks.provenance import git_commit, provenance, write_results
-from lagfluid.evaluate import evaluate
 from lagfluid.run import CONF_DIR
+from lagfluid.tasks.evaluate import evaluate
 
 RESULTS = Path(__file__).resolve().parent / "results"
 COLUMNS = (

@@ -42,13 +42,13 @@ from hydra import compose, initialize_config_dir
 from torch.profiler import ProfilerActivity, profile, record_function
 
 from benchmarks.provenance import provenance, write_results
-from lagfluid.config import at_simulator_time_step, build_initial_state, build_simulator
 from lagfluid.memory import keep_freed_memory
 from lagfluid.models.simulator import Simulator
 from lagfluid.physics.timing import StageTimer
 from lagfluid.rollout import rollout
 from lagfluid.run import CONF_DIR
 from lagfluid.state import ParticleState
+from lagfluid.tasks.config import at_simulator_time_step, build_initial_state, build_simulator
 
 RESULTS = Path(__file__).resolve().parent / "results"
 # The networks' dense layers are nn.Linear (aten::linear); a matmul called directly in a stage is one of the

@@ -1,8 +1,8 @@
 """FGN against its MPS ground truth on one scene: accuracy and wall time per step, measured in one run.
 
 Rolls out every model on the same scene for the same steps with the same threads (one after another, so
-the timings share the machine's conditions) through the package's rollout (``lagfluid.simulate.simulate``),
-then compares each rollout with MPS's:
+the timings share the machine's conditions) through the package's rollout
+(``lagfluid.tasks.simulate.simulate``), then compares each rollout with MPS's:
 
 * density error and velocity divergence (mean and max over the run; ``lagfluid.metrics`` definitions);
 * Chamfer distance to MPS (paper eq. 29, asymmetric, model -> MPS, mean over the stored frames), in l0;
@@ -33,7 +33,7 @@ from lagfluid.data.store import read_trajectory
 from lagfluid.memory import keep_freed_memory
 from lagfluid.metrics import chamfer_distance
 from lagfluid.run import CONF_DIR
-from lagfluid.simulate import simulate
+from lagfluid.tasks.simulate import simulate
 
 RESULTS = Path(__file__).resolve().parent / "results"
 

@@ -27,18 +27,18 @@ from torch_geometric.data import Batch
 
 from benchmarks.provenance import markdown_table, provenance, write_results
 from benchmarks.tables.config import compose_config
-from lagfluid.config import (
+from lagfluid.data.datasets import TrajectoryWindows, load_metadata
+from lagfluid.errors import RolloutError
+from lagfluid.metrics import chamfer_distance
+from lagfluid.registry import get_trainables
+from lagfluid.rollout import rollout
+from lagfluid.tasks.config import (
     at_simulator_time_step,
     build_initial_state,
     build_simulator,
     initial_history,
     run_guard,
 )
-from lagfluid.data.datasets import TrajectoryWindows, load_metadata
-from lagfluid.errors import RolloutError
-from lagfluid.metrics import chamfer_distance
-from lagfluid.registry import get_trainables
-from lagfluid.rollout import rollout
 
 RESULTS = Path(__file__).resolve().parent / "results"
 

@@ -34,11 +34,11 @@ from omegaconf import OmegaConf
 from torch.utils._python_dispatch import TorchDispatchMode
 
 from benchmarks.provenance import provenance, write_results
-from lagfluid import neighbors, pair_kernels
-from lagfluid.config import at_simulator_time_step, build_initial_state, build_simulator, run_device
 from lagfluid.errors import ConfigError
+from lagfluid.neighbors import pair_kernels, search
 from lagfluid.rollout import rollout
 from lagfluid.run import CONF_DIR
+from lagfluid.tasks.config import at_simulator_time_step, build_initial_state, build_simulator, run_device
 
 RESULTS = Path(__file__).resolve().parent / "results"
 
@@ -169,18 +169,18 @@ def device_path() -> Iterator[None]:
     The exact MPS pressure solve still takes its CPU helpers (SciPy components, assembly): on CUDA it runs
     its torch forms, so MPS's counts here are a partial picture of its CUDA path.
     """
-    applies, resolve = pair_kernels.applies, neighbors._resolve_backend
+    applies, resolve = pair_kernels.applies, search._resolve_backend
 
     def on_device(backend: str, device: torch.device) -> str:
         return "cell_list" if backend == "auto" else resolve(backend, device)
 
     pair_kernels.applies = lambda *tensors: False  # type: ignore[assignment]
-    neighbors._resolve_backend = on_device  # type: ignore[assignment]
+    search._resolve_backend = on_device  # type: ignore[assignment]
     try:
         yield
     finally:
         pair_kernels.applies = applies  # type: ignore[assignment]
-        neighbors._resolve_backend = resolve  # type: ignore[assignment]
+        search._resolve_backend = resolve  # type: ignore[assignment]
 
 
 def device_path_simulation(model: str, scene: str, warmup: int, device: str = "cpu") -> tuple[Any, Any]:

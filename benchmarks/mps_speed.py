@@ -23,10 +23,10 @@ import torch
 from hydra import compose, initialize_config_dir
 
 from benchmarks.provenance import markdown, markdown_table, provenance, write_results
-from lagfluid.config import build_initial_state, build_simulator
 from lagfluid.memory import keep_freed_memory
 from lagfluid.rollout import rollout
 from lagfluid.run import CONF_DIR
+from lagfluid.tasks.config import build_initial_state, build_simulator
 
 RESULTS = Path(__file__).resolve().parent / "results"
 STAGES = ("neighbors", "advection", "collision", "pressure_assembly", "pressure_solve", "correction")

@@ -58,12 +58,12 @@ from benchmarks.provenance import provenance, write_results
 from benchmarks.tables.config import compose_config, hydra_value, steps_in
 from benchmarks.tables.simulators import Simulator, all_simulators
 from benchmarks.wall_approach import boundary_distances, summary
-from lagfluid.config import build_initial_state, build_simulator, scene_params
 from lagfluid.data.store import read_trajectory
 from lagfluid.models.checkpoint import MissingWeightsError
 from lagfluid.models.exact_after import ExactAfterOptions
 from lagfluid.scenes.library import random_layout
 from lagfluid.state import ParticleState, ParticleType
+from lagfluid.tasks.config import build_initial_state, build_simulator, scene_params
 
 REPO = Path(__file__).resolve().parents[1]
 RESULTS = REPO / "benchmarks" / "results"

@@ -4,7 +4,7 @@ One Hydra multirun over every ``experiment/retrain_*.yaml`` of the core and of t
 Table 5 ablations, GNS, CConv: each a ``task=train`` job with its shipped profile and an ``export_to`` of
 its shipped weights' folder), one job after another (``hydra.launcher.n_jobs=1``: two torch trainings on
 one CPU slow each other down). The sweep's total wall time lands in ``<sweep dir>/multirun_time.json``
-(:mod:`lagfluid.multirun_timer`); each job's ``<name>_loss.csv`` has its own.
+(:mod:`lagfluid.tasks.multirun_timer`); each job's ``<name>_loss.csv`` has its own.
 
 Extra arguments are Hydra overrides for every job (``data=paper``, ``threads=2``, ``device=cuda``); an
 ``experiment=a,b`` of your own picks a subset. Rerunning the same command resumes every job from its

@@ -1,9 +1,9 @@
 """One rollout loop for every simulator: steps, the guard, timing, and hooks for what a task keeps.
 
-The loop neither writes files nor computes metrics: the tasks (:mod:`lagfluid.simulate`,
-:mod:`lagfluid.generate`, :mod:`lagfluid.evaluate`) pass ``on_frame`` (every stored frame: write it, measure
-it) and ``on_step`` (every step, with the state before and after and, on the steps ``record_when`` picks, the
-simulator's declared intermediates: training samples, one-step errors).
+The loop neither writes files nor computes metrics: the tasks (:mod:`lagfluid.tasks.simulate`,
+:mod:`lagfluid.tasks.generate`, :mod:`lagfluid.tasks.evaluate`) pass ``on_frame`` (every stored frame: write
+it, measure it) and ``on_step`` (every step, with the state before and after and, on the steps ``record_when``
+picks, the simulator's declared intermediates: training samples, one-step errors).
 
 The guard stops a run with a :class:`~lagfluid.errors.RolloutError` naming the step, the particle and the
 value (NaN/inf, a fluid particle leaving the domain, a Courant number above the limit); the exception

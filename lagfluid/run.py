@@ -180,7 +180,7 @@ def _register_plugin_configs() -> None:
 
 def dispatch(cfg: DictConfig) -> None:
     """Run the task named by ``cfg.task``; a multirun job writes into its own folder under ``out_dir``."""
-    from lagfluid.config import check_run_numbers, multirun_out_dir
+    from lagfluid.tasks.config import check_run_numbers, multirun_out_dir
 
     check_run_numbers(cfg)
     job_dir = multirun_out_dir(cfg)
@@ -188,23 +188,23 @@ def dispatch(cfg: DictConfig) -> None:
         with open_dict(cfg):
             cfg.out_dir = str(job_dir)
     if cfg.task == "simulate":
-        from lagfluid.simulate import simulate
+        from lagfluid.tasks.simulate import simulate
 
         simulate(cfg)
     elif cfg.task == "generate":
-        from lagfluid.generate import generate
+        from lagfluid.tasks.generate import generate
 
         generate(cfg)
     elif cfg.task == "train":
-        from lagfluid.train import train
+        from lagfluid.tasks.train import train
 
         train(cfg)
     elif cfg.task == "evaluate":
-        from lagfluid.evaluate.task import evaluate_task
+        from lagfluid.tasks.evaluate.task import evaluate_task
 
         evaluate_task(cfg)
     elif cfg.task == "export":
-        from lagfluid.export import export_task
+        from lagfluid.tasks.export import export_task
 
         export_task(cfg)
     else:  # guarded by check_command_line and the config
@@ -217,7 +217,7 @@ def _raise_terminated(signum: int, frame: object) -> None:
 
 def stop_hint(cfg: DictConfig) -> str:
     """What a stopped run leaves to continue from: ``task=simulate`` with its ``resume.pt``, else ''."""
-    from lagfluid.simulate_resume import CHECKPOINT
+    from lagfluid.tasks.simulate_resume import CHECKPOINT
 
     if cfg.get("task") != "simulate" or not (Path(str(cfg.out_dir)) / CHECKPOINT).is_file():
         return ""

@@ -61,8 +61,10 @@ Building blocks of a network and its step
     ``edge_vectors``         relative positions and distances of a graph's edges
     ``kernel``               the MPS weight ``re / r - 1`` of pair distances (0 beyond ``re``)
     ``device_constant``      a small constant tensor, cached per device and dtype
-    ``pair_kernels``         compiled (numba) kernels: ``load(module)`` a plugin's own, ``applies(*tensors)``
-                             whether they run on these tensors, ``set_threads()`` before calling them
+    ``pair_kernels``         compiled (numba) kernels: ``register(name, compiled=, torch=, module=)`` a
+                             plugin's kernel with its two bodies, ``backend_for(name, *tensors)`` the body
+                             that serves these tensors; ``load(module)`` and ``set_threads()`` in a
+                             compiled body
 
 Checkpoints (one file per network, tensors and plain values only)
     ``read_checkpoint``      load and check a checkpoint (format, model, kind, finite weights)
@@ -83,7 +85,6 @@ Errors (each becomes one line on the command line)
 
 from __future__ import annotations
 
-from lagfluid import pair_kernels
 from lagfluid.data.datasets import StepWindows, TrajectoryWindows
 from lagfluid.data.expert_windows import ExpertStepWindows, step_windows, trajectory_windows
 from lagfluid.data.symmetry import HorizontalSymmetry
@@ -106,7 +107,7 @@ from lagfluid.models.mps_simulator import build_mps
 from lagfluid.models.simulator import Simulator, check_simulator
 from lagfluid.models.trainable import Trainable
 from lagfluid.models.training_range import RangeWarner
-from lagfluid.neighbors import edge_vectors, radius_graph
+from lagfluid.neighbors import edge_vectors, pair_kernels, radius_graph
 from lagfluid.physics.mps import CollisionRule, ExactPressure
 from lagfluid.physics.operators import kernel
 from lagfluid.physics.scheme import SplitStepSimulator

@@ -115,7 +115,7 @@ def assert_exact_resume(monkeypatch, tmp_path):
     import csv
 
     from lagfluid.models.checkpoint import read_checkpoint
-    from lagfluid.train import train
+    from lagfluid.tasks.train import train
 
     def check(config_for, name: str) -> None:
         train(config_for(tmp_path / "straight"))

@@ -25,13 +25,13 @@ from baselines.cconv.conv import (
 from baselines.cconv.network import CConvNet
 from baselines.cconv.oracle import open3d_layer
 from baselines.cconv.simulator import DLF_WEIGHTS, SHIPPED, Y_UP, build_original, build_simulator
-from lagfluid.config import at_simulator_time_step, build_initial_state, run_guard
 from lagfluid.errors import ConfigError, LagfluidError, RolloutError
 from lagfluid.models.checkpoint import CheckpointError, MissingWeightsError
 from lagfluid.models.simulator import check_simulator
 from lagfluid.registry import available_simulators
 from lagfluid.rollout import rollout
 from lagfluid.run import CONF_DIR
+from lagfluid.tasks.config import at_simulator_time_step, build_initial_state, run_guard
 
 SHARED = Path(__file__).resolve().parents[2] / "shared"
 # their published network as the package ships it; the copy beside the checkout, where present, is the source
@@ -383,7 +383,7 @@ def test_the_shipped_weights_roll_out_the_small_dam_finite_and_inside_the_tank()
 # --------------------------------------------------------------------------------------------- training
 @pytest.fixture(scope="module")
 def step_data(tmp_path_factory):
-    from lagfluid.generate import generate
+    from lagfluid.tasks.generate import generate
 
     out = tmp_path_factory.mktemp("cconv_data")
     generate(
@@ -508,7 +508,7 @@ def test_a_gravity_other_than_the_datas_is_refused(step_data):
 def test_tiny_training_lowers_the_loss(step_data, tmp_path):
     import csv
 
-    from lagfluid.train import train
+    from lagfluid.tasks.train import train
 
     cfg = _compose(
         "task=train",
@@ -548,7 +548,7 @@ def test_a_resumed_training_ends_with_the_uninterrupted_runs_weights(step_data, 
 
 
 def test_compiled_blocks_of_kernel_cells_equal_the_torch_selection(monkeypatch):
-    from lagfluid import pair_kernels
+    from lagfluid.neighbors import pair_kernels
 
     if not pair_kernels.available():
         pytest.skip("numba not installed")
@@ -631,7 +631,7 @@ def test_a_fine_tuned_checkpoint_rolls_out_as_it_was_trained(step_data, tmp_path
     from baselines.cconv.trainable import CConvTrainable
     from lagfluid.data.datasets import StepWindows
     from lagfluid.state import ParticleState, SceneParams
-    from lagfluid.train import train
+    from lagfluid.tasks.train import train
 
     overrides = (*FINETUNE, "task=train", "train=cconv_cpu", "data=tiny", f"data.out_dir={step_data}")
     train(_compose(*overrides, f"out_dir={tmp_path}", "progress=false", "train.iterations.cconv=2",

@@ -10,7 +10,6 @@ from hydra import compose, initialize_config_dir
 from hydra.errors import ConfigCompositionException
 from omegaconf.errors import ConfigAttributeError
 
-from lagfluid.config import apply_threads, run_device, scene_params
 from lagfluid.errors import ConfigError, SceneError
 from lagfluid.registry import UnknownNameError, available_simulators, get_simulator_factory, trainable_models
 from lagfluid.run import (
@@ -21,7 +20,8 @@ from lagfluid.run import (
     check_out_dir_argument,
     dispatch,
 )
-from lagfluid.simulate import simulate
+from lagfluid.tasks.config import apply_threads, run_device, scene_params
+from lagfluid.tasks.simulate import simulate
 
 
 def _compose(*overrides):
@@ -182,7 +182,7 @@ def test_struct_mode_rejects_typos():
 @pytest.fixture(scope="module")
 def trajectory_file(tmp_path_factory):
     """A two-step ``experiment=debug`` rollout for ``scene=trajectory``."""
-    from lagfluid.simulate import simulate
+    from lagfluid.tasks.simulate import simulate
 
     out = tmp_path_factory.mktemp("trajectory")
     simulate(_compose("experiment=debug", "steps=2", f"out_dir={out}"))
@@ -199,7 +199,7 @@ def initial_states():
 @pytest.mark.parametrize("model", available_models())
 @pytest.mark.parametrize("scene", _group_names("scene"))
 def test_every_model_and_scene_composes_and_instantiates(model, scene, request, initial_states):
-    from lagfluid.config import build_initial_state, build_simulator
+    from lagfluid.tasks.config import build_initial_state, build_simulator
 
     # the file scene reads the authors' grid the repository ships; published weights are the models' defaults
     extra = [f"scene.path={request.getfixturevalue('authors_dam_grid')}"] if scene == "file" else []
@@ -226,7 +226,7 @@ def test_every_model_and_scene_composes_and_instantiates(model, scene, request, 
 
 
 def test_corrected_solver_profile_composes_over_the_authors_one(tmp_path):
-    from lagfluid.simulate import simulate
+    from lagfluid.tasks.simulate import simulate
 
     authors, corrected = _compose("solver=mps"), _compose("solver=mps_corrected")
     assert authors.solver.pressure_gradient == "minimum" and authors.solver.re_laplacian == 3.1
@@ -242,8 +242,8 @@ def test_corrected_solver_profile_composes_over_the_authors_one(tmp_path):
 
 
 def test_file_scene_without_path_is_a_clear_error():
-    from lagfluid.config import build_initial_state
     from lagfluid.errors import SceneError
+    from lagfluid.tasks.config import build_initial_state
 
     with pytest.raises(SceneError, match="needs the option path"):
         build_initial_state(_compose("scene=file"))
@@ -251,7 +251,7 @@ def test_file_scene_without_path_is_a_clear_error():
 
 def test_debug_experiment_writes_the_three_outputs(tmp_path):
     from lagfluid.data.store import read_trajectory
-    from lagfluid.simulate import simulate
+    from lagfluid.tasks.simulate import simulate
 
     cfg = _compose("experiment=debug", "steps=4", "write_every=2", f"out_dir={tmp_path}")
     metrics = simulate(cfg)
@@ -268,7 +268,7 @@ def test_debug_experiment_writes_the_three_outputs(tmp_path):
 def test_guard_stop_keeps_what_was_written_and_says_why(tmp_path):
     from lagfluid.data.store import read_trajectory
     from lagfluid.errors import RolloutError
-    from lagfluid.simulate import simulate
+    from lagfluid.tasks.simulate import simulate
 
     # dt = 0.05 s: after two steps of free fall |v| dt / l0 > 0.5, so the Courant guard fires.
     cfg = _compose("experiment=debug", "dt=0.05", "steps=10", f"out_dir={tmp_path}")
@@ -284,7 +284,7 @@ def test_guard_stop_keeps_what_was_written_and_says_why(tmp_path):
 
 def test_an_initial_velocity_past_the_courant_limit_stops_at_step_0_naming_it(tmp_path):
     from lagfluid.errors import RolloutError
-    from lagfluid.simulate import simulate
+    from lagfluid.tasks.simulate import simulate
 
     l0, k = 0.05, np.arange(-2, 6)
     lattice = np.stack(np.meshgrid(k, k, k, indexing="ij"), axis=-1).reshape(-1, 3)
@@ -464,7 +464,7 @@ def test_cli_guard_stop_is_one_clear_line(tmp_path):
 )
 def test_bad_config_values_are_lagfluid_errors_naming_the_value(override, message, tmp_path):
     from lagfluid.errors import LagfluidError
-    from lagfluid.simulate import simulate
+    from lagfluid.tasks.simulate import simulate
 
     with pytest.raises(LagfluidError, match=message):
         simulate(_compose("experiment=debug", override, f"out_dir={tmp_path}"))
@@ -474,7 +474,7 @@ def test_a_crash_mid_run_is_recorded_as_incomplete(tmp_path):
     from lagfluid.data.store import read_trajectory
     from lagfluid.models.mps_simulator import build_mps
     from lagfluid.registry import _REGISTERED, register_simulator
-    from lagfluid.simulate import simulate
+    from lagfluid.tasks.simulate import simulate
 
     def broken(cfg):
         sim = build_mps(cfg)
@@ -626,7 +626,7 @@ def test_a_sweep_composes_for_slurm_through_hydras_submitit_launcher():
 
 
 def test_timing_summary_gives_the_whole_runs_mean_beside_the_typical_median():
-    from lagfluid.simulate import timing_summary
+    from lagfluid.tasks.simulate import timing_summary
 
     # three cheap steps and one with a neighbour-list rebuild: the median hides the rebuild, the mean does not
     summary = timing_summary({"step_seconds": [1.0, 1.0, 1.0, 5.0], "stage_seconds": {}, "info": {}})

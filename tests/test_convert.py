@@ -19,9 +19,9 @@ from lagfluid.data.convert import PART_MARKER, ConversionError, convert, main
 from lagfluid.data.datasets import AdvectionSamples, TrajectoryWindows
 from lagfluid.data.store import read_trajectory
 from lagfluid.errors import LagfluidError
-from lagfluid.generate import generate
 from lagfluid.run import CONF_DIR
 from lagfluid.state import ParticleType
+from lagfluid.tasks.generate import generate
 
 LB_KEYS = (
     "dim", "dx", "dt", "write_every", "sequence_length_train", "num_trajs_train", "sequence_length_test",
@@ -237,7 +237,7 @@ def test_convert_removes_no_part_folder_but_its_own(ours, tmp_path, capsys):
 
 
 def test_gns_trains_a_step_on_a_converted_lagrangebench_dataset(lagrangebench, tmp_path):
-    from lagfluid.train import train
+    from lagfluid.tasks.train import train
 
     back = convert(lagrangebench, tmp_path / "back")
     small = {"latent": 16, "hidden": 16, "mlp_layers": 2, "blocks": 2, "history": 2, "radius": 2.1}

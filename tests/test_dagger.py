@@ -13,14 +13,10 @@ from hydra import compose, initialize_config_dir
 from omegaconf import open_dict
 
 from baselines.gns.trainable import GNSTrainable
-from lagfluid.config import at_simulator_time_step, build_simulator
 from lagfluid.data.datasets import TrajectoryWindows
 from lagfluid.data.expert_windows import EXPERT, ExpertWindows, trajectory_windows
 from lagfluid.data.layout import GROUP
 from lagfluid.errors import ConfigError, LagfluidError, RolloutError
-from lagfluid.generate import generate
-from lagfluid.generate.expert import expert_step
-from lagfluid.generate.spec import DataSpec
 from lagfluid.integrate import acceleration_from_positions
 from lagfluid.models.checkpoint import read_checkpoint
 from lagfluid.models.mps_simulator import build_mps
@@ -28,7 +24,11 @@ from lagfluid.rollout import Guard, rollout
 from lagfluid.run import CONF_DIR, _register_plugin_configs
 from lagfluid.scenes import build_scene
 from lagfluid.state import ParticleState, SceneParams
-from lagfluid.train import train
+from lagfluid.tasks.config import at_simulator_time_step, build_simulator
+from lagfluid.tasks.generate import generate
+from lagfluid.tasks.generate.expert import expert_step
+from lagfluid.tasks.generate.spec import DataSpec
+from lagfluid.tasks.train import train
 
 # a GNS small enough for seconds: history 2, no pushforward (windows of 3 frames and the next)
 TINY_GNS = ["model.gns.latent=8", "model.gns.hidden=8", "model.gns.mlp_layers=1", "model.gns.blocks=1",
@@ -230,7 +230,7 @@ def test_a_rollout_stopped_by_the_models_guard_keeps_the_frames_and_labels_befor
     two_rounds, tiny_data, tmp_path, monkeypatch
 ):
     _, first = two_rounds
-    import lagfluid.generate.expert as expert
+    import lagfluid.tasks.generate.expert as expert
 
     monkeypatch.setattr(expert, "run_guard", lambda cfg, sim: _StopAt(1.0))
     out = tmp_path / "run"

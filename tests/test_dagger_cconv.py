@@ -17,21 +17,21 @@ from omegaconf import open_dict
 from torch_geometric.data import Batch
 
 from baselines.cconv.trainable import CConvTrainable
-from lagfluid.config import at_simulator_time_step, build_simulator
 from lagfluid.data.datasets import StepWindows
 from lagfluid.data.expert_windows import EXPERT, LATER, ExpertStepWindows
 from lagfluid.data.layout import GROUP
 from lagfluid.errors import ConfigError, LagfluidError
-from lagfluid.generate import generate
-from lagfluid.generate.expert import expert_step
-from lagfluid.generate.spec import DataSpec
 from lagfluid.models.checkpoint import read_checkpoint
 from lagfluid.models.mps_simulator import build_mps
 from lagfluid.rollout import rollout
 from lagfluid.run import CONF_DIR, _register_plugin_configs
 from lagfluid.scenes import build_scene
 from lagfluid.state import ParticleType
-from lagfluid.train import train
+from lagfluid.tasks.config import at_simulator_time_step, build_simulator
+from lagfluid.tasks.generate import generate
+from lagfluid.tasks.generate.expert import expert_step
+from lagfluid.tasks.generate.spec import DataSpec
+from lagfluid.tasks.train import train
 
 DATA = ["scene=random", "data=tiny", "data.next_steps=2"]
 BOTH = ["model.exact_after.collision=true", "model.exact_after.pressure=true"]

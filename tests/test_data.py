@@ -30,12 +30,12 @@ from lagfluid.data.layout import read_scene_info, scene_path, split_counts
 from lagfluid.data.statistics import RunningStats, dataset_statistics
 from lagfluid.data.store import TrajectoryFileError, read_trajectory
 from lagfluid.errors import LagfluidError
-from lagfluid.generate import generate
 from lagfluid.neighbors import radius_graph
 from lagfluid.physics import operators as ops
 from lagfluid.physics.settings import SolverSettings, lattice_constants
 from lagfluid.run import CONF_DIR, check_command_line
 from lagfluid.state import ParticleType
+from lagfluid.tasks.generate import generate
 
 # sample_every=1: frame s + 1 is the state after sample s's step, so the pressure correction and the clamp
 # can be checked against the trajectory too.
@@ -314,8 +314,8 @@ def test_resume_regenerates_only_what_is_missing(dataset, tmp_path):
 
 
 def test_solver_keys_added_later_keep_old_fingerprints_at_their_neutral_value():
-    from lagfluid.generate import DataSpec
     from lagfluid.physics.settings import NEUTRAL_SOLVER_KEYS
+    from lagfluid.tasks.generate import DataSpec
 
     spec = DataSpec.from_config(_compose(*TINY))
     before_the_keys = {k: v for k, v in spec.solver.items() if k not in NEUTRAL_SOLVER_KEYS}

@@ -12,9 +12,9 @@ import pytest
 import torch
 from hydra import compose, initialize_config_dir
 
-from lagfluid.generate import generate
 from lagfluid.models.checkpoint import read_checkpoint
 from lagfluid.run import CONF_DIR
+from lagfluid.tasks.generate import generate
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -91,7 +91,7 @@ def test_two_processes_follow_one_process_with_the_same_global_batch(tiny, tmp_p
 
 def test_a_data_parallel_run_resumes_a_checkpoint(tiny, tmp_path, monkeypatch):
     """One process stops inside iteration 5 (after its checkpoint at 4); two processes finish the run."""
-    from lagfluid.train import train
+    from lagfluid.tasks.train import train
 
     whole = _train(tiny, tmp_path / "whole", "advection", 1)
     original, calls = torch.optim.Adam.step, {"n": 0}

@@ -1,4 +1,4 @@
-"""task=evaluate: a model against the MPS reference (lagfluid.evaluate), on dam_small for a few steps."""
+"""task=evaluate: a model against the MPS reference (lagfluid.tasks.evaluate), dam_small, a few steps."""
 
 import json
 import math
@@ -14,15 +14,15 @@ import torch
 from hydra import compose, initialize_config_dir
 
 from lagfluid.errors import ConfigError
-from lagfluid.evaluate import (
+from lagfluid.registry import UnknownNameError
+from lagfluid.run import CONF_DIR, check_command_line
+from lagfluid.tasks.evaluate import (
     cached_reference_problem,
     evaluate,
     expected_frames,
     key_hash,
     reference_key,
 )
-from lagfluid.registry import UnknownNameError
-from lagfluid.run import CONF_DIR, check_command_line
 
 STEPS = 4
 OUTPUTS = ("rollout.h5", "metrics.json", "error_vs_time.png", "pressure_slice.png")
@@ -313,7 +313,8 @@ def test_the_figures_of_a_model_without_pressure_show_speed(cli_run, tmp_path, m
     monkeypatch.setitem(registry._REGISTERED, "frozen_no_pressure", _FrozenWithoutPressure)
     seen = []
     monkeypatch.setattr(
-        "lagfluid.evaluate.figures.field_values", lambda *args: seen.append(args[0]) or field_values(*args)
+        "lagfluid.tasks.evaluate.figures.field_values",
+        lambda *args: seen.append(args[0]) or field_values(*args),
     )
     cfg = _compose(
         "model.name=frozen_no_pressure",

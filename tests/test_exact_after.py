@@ -13,7 +13,6 @@ import pytest
 import torch
 from hydra import compose, initialize_config_dir
 
-from lagfluid.config import at_simulator_time_step, build_initial_state, build_simulator
 from lagfluid.errors import ConfigError
 from lagfluid.integrate import drift
 from lagfluid.models.exact_after import ExactAfter, ExactAfterOptions
@@ -26,8 +25,9 @@ from lagfluid.physics.step_context import StepContext
 from lagfluid.physics.timing import StageTimer
 from lagfluid.run import CONF_DIR, check_command_line
 from lagfluid.scenes import build_scene
-from lagfluid.simulate import simulate
 from lagfluid.state import ParticleState, ParticleType, SceneParams
+from lagfluid.tasks.config import at_simulator_time_step, build_initial_state, build_simulator
+from lagfluid.tasks.simulate import simulate
 
 L0, DT = 0.05, 0.004
 
@@ -290,7 +290,7 @@ def test_a_stopped_gns_with_exact_stages_resumes_bit_for_bit(tmp_path, monkeypat
 
 def test_an_exact_after_that_is_off_leaves_a_resumes_settings_as_they_were():
     # a run checkpointed before model.exact_after existed resumes: the key counts only when a stage is on
-    from lagfluid.simulate_resume import run_settings
+    from lagfluid.tasks.simulate_resume import run_settings
 
     assert "exact_after" not in run_settings(_compose("model=gns"))["model"]
     on = run_settings(_compose("model=gns", "model.exact_after.pressure=true"))["model"]["exact_after"]

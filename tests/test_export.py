@@ -18,9 +18,9 @@ from PIL import Image
 
 from lagfluid.data.store import read_trajectory
 from lagfluid.errors import ConfigError
-from lagfluid.export import export_task
 from lagfluid.run import CONF_DIR
-from lagfluid.simulate import simulate
+from lagfluid.tasks.export import export_task
+from lagfluid.tasks.simulate import simulate
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -144,7 +144,7 @@ def _panels(fig):
 def test_the_field_a_picture_colours_by_follows_what_the_simulator_predicts():
     from baselines.cconv.simulator import CConvSimulator
     from baselines.gns.simulator import GNSSimulator
-    from lagfluid.config import build_simulator
+    from lagfluid.tasks.config import build_simulator
     from lagfluid.viz import FIELDS, colour_field, field_values
 
     assert colour_field(GNSSimulator) == colour_field(CConvSimulator) == "speed"
@@ -202,8 +202,8 @@ def test_a_run_stopped_by_the_guard_says_so_on_its_preview(tmp_path, monkeypatch
 def test_the_number_density_of_each_frame_is_that_frames_own(tmp_path):
     """Two particles 10 l0 apart (n = 0), then 1 l0 apart (each sees w = re/l0 - 1 = 1.1): n/n0 by hand."""
     from lagfluid.data.store import TrajectoryWriter
-    from lagfluid.export.vtk import write_paraview
     from lagfluid.physics.settings import SolverSettings, lattice_constants
+    from lagfluid.tasks.export.vtk import write_paraview
 
     l0 = 0.05
     n0 = lattice_constants(l0, SolverSettings(), 3).n0  # the ideal lattice's, at re = 2.1 l0

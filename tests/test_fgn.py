@@ -19,9 +19,7 @@ from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 from torch_geometric.data import Batch, Data
 
-from lagfluid.config import build_initial_state, build_simulator
 from lagfluid.errors import ConfigError, LagfluidError
-from lagfluid.generate import generate
 from lagfluid.models.checkpoint import CheckpointError, network_payload, read_checkpoint, save_checkpoint
 from lagfluid.models.fgn import networks as fgn_mod
 from lagfluid.models.fgn.learned_stages import compact_nodes
@@ -30,9 +28,11 @@ from lagfluid.models.fgn.original import load_original_network
 from lagfluid.models.fgn.simulator import AUTHORS_WEIGHTS
 from lagfluid.models.fgn.trainables import build_trainables
 from lagfluid.run import CONF_DIR
-from lagfluid.simulate import simulate
 from lagfluid.state import ParticleType
-from lagfluid.train import learning_rate, train
+from lagfluid.tasks.config import build_initial_state, build_simulator
+from lagfluid.tasks.generate import generate
+from lagfluid.tasks.simulate import simulate
+from lagfluid.tasks.train import learning_rate, train
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -281,8 +281,8 @@ def test_compact_nodes_keeps_the_fluid_rows_and_renumbers_sources():
 
 
 def test_induced_subgraph_compiled_and_torch_paths_agree(monkeypatch):
-    from lagfluid import pair_kernels
     from lagfluid.models.fgn.learned_stages import induced_subgraph
+    from lagfluid.neighbors import pair_kernels
 
     gen = torch.Generator().manual_seed(4)
     edge_index = torch.randint(0, 50, (2, 400), generator=gen)
@@ -830,7 +830,7 @@ def test_metrics_json_holds_the_networks_as_an_object_not_json_text(tmp_path):
 
 
 def test_stage_losses_and_an_unknown_loss_is_named():
-    from lagfluid.train import stage_loss
+    from lagfluid.tasks.train import stage_loss
 
     pred = torch.tensor([0.0, 0.5, 100.0])
     target = torch.zeros(3)
@@ -895,7 +895,7 @@ def test_graphs_derived_across_a_rollout_equal_fresh_filters(monkeypatch, model)
     """Every graph a step hands a stage (filtered, sliced, derived, or carried over from the last step's
     x**) equals a fresh exact filter at its positions; and the carry saves filters: FGN filters the Verlet
     list once a step (at x**), MPS twice (x^n at the Laplacian's radius cannot be derived)."""
-    from lagfluid.neighbor_list import VerletNeighborList
+    from lagfluid.neighbors.verlet import VerletNeighborList
     from lagfluid.physics.step_context import StepContext
 
     cfg = _compose(f"model={model}", "scene=dam_small", "scene.params.gravity=[0,0,-60]")  # fast: big moves

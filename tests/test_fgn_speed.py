@@ -45,7 +45,7 @@ def test_a_rebuild_profile_names_the_verlet_lists_parts(tmp_path):
     with open(tmp_path / "fgn_speed_rebuild.csv") as f:
         rows = list(csv.DictReader(f))
     top = rows[0]
-    assert top["function"].startswith("update (neighbor_list.py") and float(top["share"]) == 1.0
+    assert top["function"].startswith("update (verlet.py") and float(top["share"]) == 1.0
     assert float(top["calls_per_rebuild"]) == 1.0 and int(top["candidates"]) > 0
     names = [r["function"] for r in rows]
     assert any(n.startswith("_search_with_cells") for n in names)  # the compiled cell search was profiled

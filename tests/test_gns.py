@@ -18,10 +18,8 @@ from baselines.gns.network import GNSNet, InteractionNetwork
 from baselines.gns.simulator import SHIPPED, GNSSimulator, build_simulator
 from baselines.gns.trainable import GNSTrainable, random_walk_noise, step_acceleration, symmetric_batch
 from benchmarks.gns_edge_layer import concatenated_first_layer
-from lagfluid.config import at_simulator_time_step, build_initial_state, initial_history, run_guard
 from lagfluid.data.symmetry import HorizontalSymmetry
 from lagfluid.errors import ConfigError, LagfluidError, RolloutError
-from lagfluid.generate import generate
 from lagfluid.integrate import acceleration_from_positions, semi_implicit_euler
 from lagfluid.models.mps_simulator import build_mps
 from lagfluid.models.simulator import check_simulator
@@ -29,7 +27,9 @@ from lagfluid.registry import available_simulators, trainable_models
 from lagfluid.rollout import rollout
 from lagfluid.run import CONF_DIR
 from lagfluid.state import ParticleState, ParticleType
-from lagfluid.train import train
+from lagfluid.tasks.config import at_simulator_time_step, build_initial_state, initial_history, run_guard
+from lagfluid.tasks.generate import generate
+from lagfluid.tasks.train import train
 
 SMALL = {"latent": 16, "hidden": 16, "mlp_layers": 2, "blocks": 3, "history": 5, "radius": 2.1}
 L0 = 0.05
@@ -505,7 +505,7 @@ def test_the_frame_spacing_is_the_decimal_the_float32_buffer_was_stored_from(fra
     """A 16 ms network's float32 buffer reads 0.016000001: its frames' times would miss the reference's
     2 ms grid from the fourth frame on (``common_frames``' tolerance is 2e-9 s), and an evaluation would
     compare frame 0 only (``benchmarks/results/gns_levers.md``'s first 16 ms rows)."""
-    from lagfluid.evaluate.compare import common_frames
+    from lagfluid.tasks.evaluate.compare import common_frames
 
     net = _net(dtype=torch.float32)
     net.frame_dt.fill_(frame_dt)
@@ -649,8 +649,8 @@ def test_train_frame_stride_reaches_the_windows_and_a_bad_one_is_refused(tiny_da
 
 @pytest.mark.skipif(not (SHIPPED / "gns.pt").is_file(), reason="no shipped GNS weights")
 def test_the_shipped_weights_warn_once_outside_their_training_range(caplog):
-    from lagfluid.config import build_simulator
     from lagfluid.models.checkpoint import read_checkpoint
+    from lagfluid.tasks.config import build_simulator
 
     assert read_checkpoint(SHIPPED / "gns.pt")["meta"]["range"]["viscosity"] == [1e-06, 1e-06]
     overrides = ("model=gns", "scene=dam_small", "scene.params.viscosity=0.1")

@@ -19,9 +19,9 @@ import pytest
 import torch
 from hydra import compose, initialize_config_dir
 
-from lagfluid.config import build_simulator
 from lagfluid.models.checkpoint import read_checkpoint
 from lagfluid.run import CONF_DIR
+from lagfluid.tasks.config import build_simulator
 
 REPO = Path(__file__).resolve().parents[1]
 SCRIPT = "benchmarks/gpu_train.sh"

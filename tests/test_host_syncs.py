@@ -22,7 +22,7 @@ FGN_READS = {
     "needs_rebuild": "the Verlet list's rebuild test, once per set of positions it is asked at",
     "moved": "the displacement since an anchor graph, which sets the radius a derived graph is cut at",
     "_derive": "whether a wall newly within reach of the fluid needs the full filter",
-    "kernel_adjacency": "a CSR matrix's range and order checks, one read per matrix",
+    "_adjacency_torch": "a CSR matrix's range and order checks (kernel_adjacency), one read per matrix",
 }
 
 
@@ -84,9 +84,9 @@ def test_guard_reads_a_passing_state_once():
 def test_cuda_rollout_matches_the_cpu_device_path(model):
     from hydra import compose, initialize_config_dir
 
-    from lagfluid.config import at_simulator_time_step, build_initial_state, build_simulator
     from lagfluid.rollout import rollout
     from lagfluid.run import CONF_DIR
+    from lagfluid.tasks.config import at_simulator_time_step, build_initial_state, build_simulator
 
     finals = {}
     for device in ("cpu", "cuda"):
@@ -105,9 +105,9 @@ def test_device_path_rollout_is_the_compiled_paths(model):
     # what CUDA runs (torch ops throughout) and the CPU's compiled kernels: the same pairs, the same sums
     from hydra import compose, initialize_config_dir
 
-    from lagfluid.config import build_initial_state, build_simulator
     from lagfluid.rollout import rollout
     from lagfluid.run import CONF_DIR
+    from lagfluid.tasks.config import build_initial_state, build_simulator
 
     def final(on_device_path: bool):
         with contextlib.ExitStack() as stack:

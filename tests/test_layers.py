@@ -32,26 +32,10 @@ LAYERS: dict[str, tuple[str, ...]] = {
     "plugins": ("baselines", "baselines.*", "tests.plugins.*"),
     # the public plugin surface: names re-exported from the layers below, never from the tasks
     "zoo": ("lagfluid.zoo",),
-    "tasks": (
-        "lagfluid.run",
-        "lagfluid.retrain",  # the retrain-everything sweep of lagfluid.run
-        "lagfluid.multirun_timer",  # a Hydra callback of every multirun
-        "lagfluid.config",  # a run's setup from its config, shared by the tasks
-        "lagfluid.outputs",  # a run's output files, replaced together
-        "lagfluid.locks",  # the locks on what a run writes, and their Hydra callback
-        "lagfluid.simulate",
-        "lagfluid.simulate_resume",  # task=simulate's resume=true checkpoints
-        "lagfluid.generate",
-        "lagfluid.generate.*",
-        "lagfluid.train",
-        "lagfluid.onpolicy_rounds",  # task=train's DAgger rounds (generate, then fine-tune)
-        "lagfluid.dagger_rounds",  # task=train's DAgger rounds of end-to-end models
-        "lagfluid.dagger_eval",  # their per-round dam rollout
-        "lagfluid.evaluate*",
-        "lagfluid.export",
-        "lagfluid.export.*",  # task=export: ParaView series and animations of rollout files
-        "lagfluid.distributed",  # task=train under torchrun
-    ),
+    # the two commands: python -m lagfluid.run (every task) and python -m lagfluid.retrain (a sweep of it)
+    "commands": ("lagfluid.run", "lagfluid.retrain"),
+    # task=<name> is lagfluid/tasks/<name>, beside their config, outputs, locks, resume and training rounds
+    "tasks": ("lagfluid.tasks", "lagfluid.tasks.*"),
     "rollout": ("lagfluid.rollout",),
     "models": ("lagfluid.models", "lagfluid.models.*"),
     "physics": ("lagfluid.physics", "lagfluid.physics.*"),
@@ -60,15 +44,10 @@ LAYERS: dict[str, tuple[str, ...]] = {
     "scenes": ("lagfluid.scenes", "lagfluid.scenes.*"),
     "data": ("lagfluid.data", "lagfluid.data.*"),
     "viz": ("lagfluid.viz",),
-    "operators": (
-        "lagfluid.physics.operators",
-        "lagfluid.physics._*_numba",
-        "lagfluid.neighbors",
-        "lagfluid.neighbor_list",
-        "lagfluid.pair_kernels",
-        "lagfluid._pair_kernels_numba",
-        "lagfluid.integrate",
-    ),
+    # the MPS operators (carved out of physics/: the data, the scenes and the metrics use them) and the update
+    "operators": ("lagfluid.physics.operators", "lagfluid.physics._*_numba", "lagfluid.integrate"),
+    # radius graphs, the Verlet list, edge geometry, CSR matrices, compiled pair kernels and their dispatch
+    "neighbors": ("lagfluid.neighbors", "lagfluid.neighbors.*"),
     # plugin_configs: the config folders (core and plugins') and the resolver lagfluid/__init__ registers
     # (stdlib and errors only)
     # progress: the rollout's and the trainer's bar or log lines (tqdm and logging only)
@@ -86,6 +65,10 @@ LAYERS: dict[str, tuple[str, ...]] = {
     ),
 }
 
+# Patterns that take modules out of a folder's layer into another (every other pattern names a module at
+# lagfluid's root, or a whole folder as "lagfluid.<folder>" and "lagfluid.<folder>.*": checked).
+CARVED_OUT: tuple[str, ...] = ("lagfluid.physics.operators", "lagfluid.physics._*_numba")
+
 _LAGFLUID = tuple(layer for layer in LAYERS if layer not in ("benchmarks", "plugins"))
 
 # What each layer may import besides its own modules.
@@ -93,25 +76,28 @@ MAY_IMPORT: dict[str, frozenset[str]] = {
     "benchmarks": frozenset(LAYERS) - {"benchmarks"},
     # what a plugin needs of lagfluid is re-exported there; a plugin never imports another's internals
     "plugins": frozenset({"zoo"}),
-    # nothing of the tasks (a plugin is no task), nothing in lagfluid imports the zoo
-    "zoo": frozenset(_LAGFLUID) - {"zoo", "tasks"},
-    "tasks": frozenset(_LAGFLUID) - {"zoo", "tasks"},
+    # nothing of the tasks or commands (a plugin is no task), nothing in lagfluid imports the zoo
+    "zoo": frozenset(_LAGFLUID) - {"zoo", "commands", "tasks"},
+    "commands": frozenset(_LAGFLUID) - {"zoo", "commands"},
+    "tasks": frozenset(_LAGFLUID) - {"zoo", "commands", "tasks"},
     # the loop and guard only: files, metrics and the registry are the tasks'
     "rollout": frozenset({"models", "base"}),
     # a model's trainables provide their datasets, hence data
-    "models": frozenset({"physics", "data", "operators", "base"}),
+    "models": frozenset({"physics", "data", "operators", "neighbors", "base"}),
     # physics never imports models
-    "physics": frozenset({"operators", "base"}),
+    "physics": frozenset({"operators", "neighbors", "base"}),
     # simulator-neutral: no models, no split-step stages, no MPS or PPE references
-    "metrics": frozenset({"operators", "base"}),
+    "metrics": frozenset({"operators", "neighbors", "base"}),
     # module level only: built-ins are loaded lazily by string, inside functions
     "registry": frozenset({"base"}),
     # a scene may be read from a stored trajectory (scene=trajectory)
-    "scenes": frozenset({"data", "operators", "base"}),
+    "scenes": frozenset({"data", "operators", "neighbors", "base"}),
     # formats only: never tasks, rollout, models or physics
-    "data": frozenset({"operators", "base"}),
+    "data": frozenset({"operators", "neighbors", "base"}),
     "viz": frozenset({"base"}),
-    "operators": frozenset({"base"}),
+    "operators": frozenset({"neighbors", "base"}),
+    # the search knows particles and their types, nothing of physics or models
+    "neighbors": frozenset({"base"}),
     "base": frozenset(),
 }
 
@@ -342,6 +328,37 @@ def dead_patterns(sources: dict[str, str], layers: dict[str, tuple[str, ...]] = 
     ]
 
 
+def folder_problems(
+    sources: dict[str, str],
+    layers: dict[str, tuple[str, ...]] = LAYERS,
+    carved_out: tuple[str, ...] = CARVED_OUT,
+) -> list[str]:
+    """Where the table does not state lagfluid's folders as folders.
+
+    Each folder ``lagfluid/<f>/`` must be named as a whole, ``lagfluid.<f>`` and ``lagfluid.<f>.*`` in one
+    layer; every other pattern names a module at lagfluid's root, or is one of ``carved_out``. A table that
+    lists a folder's modules one by one (a new module would fall in no layer) is named here.
+    """
+    parts = [Path(path).with_suffix("").parts for path in sources if path.startswith("lagfluid/")]
+    folders = {p[1] for p in parts if len(p) > 2}
+    root_modules = {p[1] for p in parts if len(p) == 2 and p[1] != "__init__"}
+    layer_of_pattern = {pattern: layer for layer, patterns in layers.items() for pattern in patterns}
+    problems = [
+        f"lagfluid/{folder}/: name it as a folder, 'lagfluid.{folder}' and 'lagfluid.{folder}.*' in one layer"
+        for folder in sorted(folders)
+        if layer_of_pattern.get(f"lagfluid.{folder}") is None
+        or layer_of_pattern.get(f"lagfluid.{folder}") != layer_of_pattern.get(f"lagfluid.{folder}.*")
+    ]
+    for pattern, layer in layer_of_pattern.items():
+        name = pattern.split(".")
+        if name[0] != "lagfluid" or len(name) == 1 or pattern in carved_out:
+            continue
+        whole = name[1] in folders and (len(name) == 2 or name[2:] == ["*"])
+        if not whole and not (len(name) == 2 and name[1] in root_modules):
+            problems.append(f"{layer}: {pattern} names modules inside a folder, not the folder")
+    return problems
+
+
 def upward_rules(
     layers: dict[str, tuple[str, ...]] = LAYERS, may_import: dict[str, frozenset[str]] = MAY_IMPORT
 ) -> list[str]:
@@ -395,6 +412,11 @@ def test_every_pattern_names_a_module():
     assert not dead, "patterns of LAYERS that match no module (remove them):\n" + "\n".join(dead)
 
 
+def test_the_table_states_folders():
+    problems = folder_problems(package_sources())
+    assert not problems, "LAYERS names lagfluid's folders by their modules:\n" + "\n".join(problems)
+
+
 def test_every_layer_has_its_rule_and_imports_only_layers_below_it():
     assert set(MAY_IMPORT) == set(LAYERS)
     assert not upward_rules(), "LAYERS lists them top down:\n" + "\n".join(upward_rules())
@@ -409,8 +431,8 @@ def test_checker_accepts_downward_imports():
         "lagfluid/state.py": "from lagfluid.errors import SceneError\n",
         "lagfluid/errors.py": "",
         "lagfluid/physics/__init__.py": "",
-        "lagfluid/physics/operators.py": "from lagfluid import pair_kernels\nimport lagfluid.state\n",
-        "lagfluid/pair_kernels.py": "import numpy\n",
+        "lagfluid/physics/operators.py": "from lagfluid.neighbors import csr\nimport lagfluid.state\n",
+        "lagfluid/neighbors/csr.py": "import numpy\n",
         "lagfluid/physics/mps.py": "from . import operators as ops\nfrom .operators import x\n",
         "lagfluid/models/__init__.py": "",
         "lagfluid/models/mps.py": "from lagfluid.physics.mps import A\n",
@@ -496,14 +518,25 @@ def test_checker_holds_plugins_to_the_zoo_and_lets_benchmarks_import_anything():
 
 def test_checker_forbids_the_zoo_to_import_tasks_and_tasks_to_import_the_zoo():
     sources = {
-        "lagfluid/zoo.py": "from lagfluid.config import scene_params\n",
-        "lagfluid/config.py": "",
-        "lagfluid/run.py": "import lagfluid.zoo\n",
+        "lagfluid/zoo.py": "from lagfluid.tasks.config import scene_params\nimport lagfluid.run\n",
+        "lagfluid/tasks/config.py": "",
+        "lagfluid/tasks/simulate.py": "import lagfluid.zoo\nfrom lagfluid import run\n",
+        "lagfluid/run.py": "def main():\n    from lagfluid.tasks import simulate\n    import lagfluid.zoo\n",
     }
     found = {(v.importer, v.imported): v.rule for v in check(sources)}
-    assert set(found) == {("lagfluid.zoo", "lagfluid.config"), ("lagfluid.run", "lagfluid.zoo")}
-    assert "layer 'zoo' may not import layer 'tasks'" in found[("lagfluid.zoo", "lagfluid.config")]
-    assert "layer 'tasks' may not import layer 'zoo'" in found[("lagfluid.run", "lagfluid.zoo")]
+    assert set(found) == {
+        ("lagfluid.zoo", "lagfluid.tasks.config"),
+        ("lagfluid.zoo", "lagfluid.run"),
+        ("lagfluid.tasks.simulate", "lagfluid.zoo"),
+        ("lagfluid.tasks.simulate", "lagfluid.run"),
+        ("lagfluid.run", "lagfluid.zoo"),
+    }
+    assert "layer 'zoo' may not import layer 'tasks'" in found[("lagfluid.zoo", "lagfluid.tasks.config")]
+    assert "layer 'zoo' may not import layer 'commands'" in found[("lagfluid.zoo", "lagfluid.run")]
+    task = "lagfluid.tasks.simulate"
+    assert "layer 'tasks' may not import layer 'zoo'" in found[(task, "lagfluid.zoo")]
+    assert "layer 'tasks' may not import layer 'commands'" in found[(task, "lagfluid.run")]
+    assert "layer 'commands' may not import layer 'zoo'" in found[("lagfluid.run", "lagfluid.zoo")]
 
 
 def test_circles_are_found_through_function_level_imports_as_a_shortest_loop():
@@ -540,11 +573,42 @@ def test_dead_patterns_and_upward_rules_are_named():
     ]
 
 
+def test_a_folder_listed_module_by_module_is_named():
+    sources = {
+        "lagfluid/__init__.py": "",
+        "lagfluid/run.py": "",
+        "lagfluid/tasks/__init__.py": "",
+        "lagfluid/tasks/train.py": "",
+        "lagfluid/tasks/simulate.py": "",
+        "lagfluid/neighbors/__init__.py": "",
+        "lagfluid/neighbors/verlet.py": "",
+    }
+    layers = {
+        "commands": ("lagfluid.run",),
+        "tasks": ("lagfluid.tasks", "lagfluid.tasks.train", "lagfluid.tasks.simulate"),
+        "neighbors": ("lagfluid.neighbors", "lagfluid.neighbors.*"),
+        "base": ("lagfluid",),
+    }
+    assert folder_problems(sources, layers, carved_out=()) == [
+        "lagfluid/tasks/: name it as a folder, 'lagfluid.tasks' and 'lagfluid.tasks.*' in one layer",
+        "tasks: lagfluid.tasks.train names modules inside a folder, not the folder",
+        "tasks: lagfluid.tasks.simulate names modules inside a folder, not the folder",
+    ]
+    layers["tasks"] = ("lagfluid.tasks", "lagfluid.tasks.*")
+    layers["operators"] = ("lagfluid.neighbors.verlet",)
+    assert folder_problems(sources, layers, carved_out=()) == [
+        "operators: lagfluid.neighbors.verlet names modules inside a folder, not the folder"
+    ]
+    assert folder_problems(sources, layers, carved_out=("lagfluid.neighbors.verlet",)) == []
+
+
 def test_layer_of_prefers_the_most_specific_pattern():
     assert layer_of("lagfluid.physics.operators") == "operators"
     assert layer_of("lagfluid.physics._ppe_numba") == "operators"
     assert layer_of("lagfluid.physics.ppe") == "physics"
-    assert layer_of("lagfluid.evaluate_tables") == "tasks"
+    assert layer_of("lagfluid.tasks.evaluate.task") == "tasks"
+    assert layer_of("lagfluid.neighbors.pair_kernels") == "neighbors"
+    assert layer_of("lagfluid.evaluate_tables") is None  # a module at the root in no layer
     assert layer_of("lagfluid.trainables") is None
 
 
@@ -562,6 +626,7 @@ def main() -> int:
         ("violations", list(map(str, check(sources)))),
         ("circles", list(map(describe_circle, circles(sources)))),
         ("patterns naming no module", dead_patterns(sources)),
+        ("folders not named as folders", folder_problems(sources)),
         ("rules pointing up", upward_rules()),
     ]
     for title, lines in problems:

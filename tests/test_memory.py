@@ -105,9 +105,9 @@ def test_each_model_states_its_own_estimate_above_what_it_was_measured_to_need()
     """The estimates against their calibration (peak RSS of task=simulate, threads=1; lagfluid/memory.py)."""
     from hydra import compose, initialize_config_dir
 
-    from lagfluid.config import build_initial_state, build_simulator
     from lagfluid.memory import memory_needed
     from lagfluid.run import CONF_DIR
+    from lagfluid.tasks.config import build_initial_state, build_simulator
 
     # dam_large (40,000 fluid, 148,736 particles): MPS 45 steps and FGN 40 (a Verlet rebuild each), GNS 8 (its
     # MPS warm start, then the network), CConv 3
@@ -157,7 +157,7 @@ def test_a_rollout_too_large_for_the_memory_left_is_refused_before_the_first_sea
 ):
     from lagfluid.errors import SceneError
     from lagfluid.scenes import build_scene, save_grid, validation
-    from lagfluid.simulate import simulate
+    from lagfluid.tasks.simulate import simulate
 
     if scene == ("scene=file",):  # the dam_small grid as a file: its particles are the file's
         save_grid(build_scene("dam", fluid_size=[8, 8, 10], tank_size=[21, 9]), tmp_path / "grid.npz")

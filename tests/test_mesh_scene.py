@@ -11,8 +11,8 @@ from hydra import compose, initialize_config_dir
 
 from lagfluid.run import CONF_DIR
 from lagfluid.scenes import build_scene
-from lagfluid.simulate import simulate
 from lagfluid.state import ParticleType, SceneError
+from lagfluid.tasks.simulate import simulate
 
 L0 = 0.05
 

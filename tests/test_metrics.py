@@ -8,7 +8,6 @@ import pytest
 import torch
 from hydra import compose, initialize_config_dir
 
-from lagfluid.config import build_initial_state, build_simulator
 from lagfluid.metrics import (
     MetricInputError,
     chamfer_distance,
@@ -24,6 +23,7 @@ from lagfluid.physics.reference import exact_context, exact_ppe, mps_constants, 
 from lagfluid.physics.settings import SolverSettings
 from lagfluid.run import CONF_DIR
 from lagfluid.state import ParticleState
+from lagfluid.tasks.config import build_initial_state, build_simulator
 
 
 # ------------------------------------------------------------------------------------------- field metrics
@@ -66,8 +66,8 @@ def test_velocity_divergence_averages_expansion_and_compression_as_magnitudes():
 def test_kinetic_energy_of_runs_at_two_spacings_uses_each_runs_particle_mass(tmp_path):
     """The same block moving at 1 m/s as 8 particles of l0 = 0.05 and as 1 of l0 = 0.1: the same energy."""
     from lagfluid.data.store import TrajectoryWriter
-    from lagfluid.evaluate.compare import compare
     from lagfluid.physics.settings import SolverSettings
+    from lagfluid.tasks.evaluate.compare import compare
 
     def write(path, l0, n):
         k = np.arange(n) * l0
@@ -93,8 +93,8 @@ def test_frames_meet_the_reference_despite_float32_drift_and_a_miss_is_said(tmp_
     (1e-9 s of drift a frame); frames 5 ms apart meet one stored every 16 ms at t = 0 only, and the log says
     the metrics are of that frame alone instead of passing a Chamfer distance of 0 off as a perfect model."""
     from lagfluid.data.store import TrajectoryWriter
-    from lagfluid.evaluate.compare import compare
     from lagfluid.physics.settings import SolverSettings
+    from lagfluid.tasks.evaluate.compare import compare
 
     pos = np.stack(np.meshgrid(*[np.arange(3) * 0.05] * 3, indexing="ij"), -1).reshape(-1, 3) + 1.0
 
@@ -106,10 +106,10 @@ def test_frames_meet_the_reference_despite_float32_drift_and_a_miss_is_said(tmp_
         return path
 
     ref = write(tmp_path / "ref.h5", 0.002, 64, 8)  # every 16 ms to 1 s
-    with caplog.at_level("WARNING", logger="lagfluid.evaluate.compare"):
+    with caplog.at_level("WARNING", logger="lagfluid.tasks.evaluate.compare"):
         out = compare(write(tmp_path / "drift.h5", 0.016000001, 60, 1), ref, SolverSettings())
     assert out["step"] == list(range(60)) and not caplog.records
-    with caplog.at_level("WARNING", logger="lagfluid.evaluate.compare"):
+    with caplog.at_level("WARNING", logger="lagfluid.tasks.evaluate.compare"):
         out = compare(write(tmp_path / "off.h5", 0.005, 5, 1), ref, SolverSettings())
     assert out["step"] == [0] and "5 stored frames, but 1 at a time" in caplog.text
 

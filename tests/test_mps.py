@@ -8,8 +8,8 @@ from omegaconf import OmegaConf
 
 from lagfluid.errors import ConfigError, RolloutError
 from lagfluid.models.mps_simulator import build_mps
-from lagfluid.neighbor_list import VerletNeighborList
 from lagfluid.neighbors import radius_graph
+from lagfluid.neighbors.verlet import VerletNeighborList
 from lagfluid.physics.settings import SolverSettings, lattice_constants
 from lagfluid.rollout import Guard, rollout
 from lagfluid.scenes import build_scene
@@ -115,7 +115,7 @@ def test_verlet_list_rebuilds_before_two_particles_can_close_a_skin(backend):
 
 
 def test_take_edges_equals_column_indexing_also_into_a_slice():
-    from lagfluid.neighbor_list import take_edges
+    from lagfluid.neighbors.verlet import take_edges
 
     gen = torch.Generator().manual_seed(3)
     edge_index = torch.randint(0, 50, (2, 40), generator=gen)

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-import lagfluid.neighbors as nb
+import lagfluid.neighbors.search as nb
 from lagfluid.neighbors import (
     NeighborOverflowError,
     available_backends,
@@ -165,7 +165,7 @@ def test_far_flung_particle(backend):
 
 def test_numba_cell_list_falls_back_to_the_kd_tree_on_a_huge_box(monkeypatch):
     # The compiled cell list keeps a dense cell table; a box with too many cells per particle goes to SciPy.
-    from lagfluid import pair_kernels
+    from lagfluid.neighbors import pair_kernels
 
     if "numba" not in available_backends():
         pytest.skip("numba not installed")
@@ -180,7 +180,7 @@ def test_numba_cell_list_falls_back_to_the_kd_tree_on_a_huge_box(monkeypatch):
 
 
 def test_auto_picks_numba_on_the_cpu_and_scipy_without_it(monkeypatch):
-    from lagfluid import pair_kernels
+    from lagfluid.neighbors import pair_kernels
 
     if "numba" in available_backends():
         assert nb._resolve_backend("auto", torch.device("cpu")) == "numba"
@@ -430,26 +430,36 @@ def test_kernel_adjacency_matmul_equals_loop():
 
 
 def test_kernel_adjacency_compiled_row_pointer_equals_the_torch_build(monkeypatch):
-    # Sorted pairs take the one-pass compiled check; the CSR it builds is the torch path's, empty rows (the
-    # last ones too) included, and pairs out of order, repeated or out of range go to the torch path.
-    from lagfluid import neighbors
+    # Sorted pairs take the one-pass compiled check; the CSR it builds is the torch body's, empty rows (the
+    # last ones too) included, and pairs out of order, repeated or out of range go to the torch body.
+    from lagfluid.neighbors import csr, pair_kernels
 
     gen = torch.Generator().manual_seed(3)
     pos = torch.rand(80, 3, generator=gen)
     edges = radius_graph(pos, 0.3, receivers=torch.arange(80) < 70)  # rows 70..79 empty
     w = torch.rand(edges.shape[1], generator=gen)
     fast = kernel_adjacency(edges, w, 80)
-    if "numba" in available_backends():
-        assert neighbors._compiled_row_pointer(edges[1], edges[0], 80, 80) is not None
     with monkeypatch.context() as m:
-        m.setattr(neighbors, "_compiled_row_pointer", lambda *a: None)
+        m.setattr(pair_kernels, "applies", lambda *a: False)
         slow = kernel_adjacency(edges, w, 80)
     for part in ("crow_indices", "col_indices", "values"):
         assert torch.equal(getattr(fast, part)(), getattr(slow, part)()), part
+    if "numba" not in available_backends():
+        return
+    assert pair_kernels.backend_for("kernel_adjacency", edges[1], edges[0]) is csr._adjacency_compiled
+    handed = []
+    torch_body = csr._adjacency_torch
+    monkeypatch.setattr(csr, "_adjacency_torch", lambda *a: handed.append(a[3:]) or torch_body(*a))
+    csr._adjacency_compiled(edges[1], edges[0], w, 80, 80)
+    assert handed == []  # sorted, in range: the compiled pass
     swapped = edges.clone()
     swapped[0, [0, 1]] = swapped[0, [1, 0]]  # two sources of one target out of order
-    assert neighbors._compiled_row_pointer(swapped[1], swapped[0], 80, 80) is None
-    assert int(edges[0].max()) == 79 and neighbors._compiled_row_pointer(edges[1], edges[0], 80, 79) is None
+    csr._adjacency_compiled(swapped[1], swapped[0], w, 80, 80)
+    assert handed == [(80, 80)]
+    assert int(edges[0].max()) == 79
+    with pytest.raises(ValueError, match=r"source index out of range \[0, 79\)"):
+        csr._adjacency_compiled(edges[1], edges[0], w, 80, 79)
+    assert handed == [(80, 80), (80, 79)]
 
 
 def test_kernel_adjacency_rejects_bad_edges():

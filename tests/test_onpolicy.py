@@ -11,10 +11,10 @@ from hydra import compose, initialize_config_dir
 from lagfluid.data.datasets import AdvectionSamples, PressureSamples, StepWindows, TrajectoryWindows
 from lagfluid.data.layout import GROUP
 from lagfluid.errors import ConfigError, LagfluidError
-from lagfluid.generate import generate
-from lagfluid.generate.spec import DataSpec
 from lagfluid.models.fgn.ppe_term import LABEL_TOLERANCE, WithPPESystem
 from lagfluid.run import CONF_DIR
+from lagfluid.tasks.generate import generate
+from lagfluid.tasks.generate.spec import DataSpec
 
 
 def _compose(*overrides):

@@ -12,10 +12,10 @@ from hydra import compose, initialize_config_dir
 
 from lagfluid.data.layout import GROUP
 from lagfluid.errors import ConfigError
-from lagfluid.generate import generate
 from lagfluid.models.checkpoint import read_checkpoint
 from lagfluid.run import CONF_DIR
-from lagfluid.train import train
+from lagfluid.tasks.generate import generate
+from lagfluid.tasks.train import train
 
 
 def _compose(*overrides):

@@ -9,6 +9,7 @@ from functools import cache
 import pytest
 import torch
 
+from lagfluid.neighbors import csr, pair_kernels
 from lagfluid.physics import operators as ops
 
 L0 = 0.05
@@ -577,12 +578,25 @@ def test_kernel_fast_path_equals_the_differentiable_one():
         assert torch.equal(ops.kernel(d, re), slow)
 
 
+def _torch_only(m: pytest.MonkeyPatch) -> None:
+    """Every kernel runs its torch body (the switch the compiled bodies are compared against)."""
+    m.setattr(pair_kernels, "applies", lambda *tensors: False)
+
+
+def _handed_to(monkeypatch: pytest.MonkeyPatch, torch_body: str) -> list[tuple]:
+    """The calls of the operators' torch body ``torch_body`` from now on (each still runs)."""
+    calls = []
+    body = getattr(ops, torch_body)
+    monkeypatch.setattr(ops, torch_body, lambda *a: calls.append(a) or body(*a))
+    return calls
+
+
 @pytest.mark.skipif(ops._operator_kernels() is None, reason="numba not installed")
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 @pytest.mark.parametrize("channels", [None, 3])
 def test_compiled_laplacian_equals_the_torch_operations(monkeypatch, dtype, channels):
-    # The CPU fast path (one compiled pass per target row) gives the torch path's numbers to the bit,
-    # into a prefix of the rows (num_nodes < N) too, and declines graphs not sorted by target.
+    # The compiled body (one pass per target row) gives the torch body's numbers to the bit, into a prefix of
+    # the rows (num_nodes < N) too, and hands graphs not sorted by target to the torch body.
     gen = torch.Generator().manual_seed(7)
     pos = torch.rand(600, 3, generator=gen, dtype=dtype) * 0.4
     re = 3.1 * L0
@@ -599,17 +613,22 @@ def test_compiled_laplacian_equals_the_torch_operations(monkeypatch, dtype, chan
     ):
         fast = ops.laplacian(p, e, v, re, 54.3, 3.24 * L0**2, num_nodes=rows)
         with monkeypatch.context() as m:
-            m.setattr(ops, "_compiled_laplacian", lambda *a: None)
+            _torch_only(m)
             slow = ops.laplacian(p, e, v, re, 54.3, 3.24 * L0**2, num_nodes=rows)
         assert fast.shape == slow.shape and torch.equal(fast, slow)
+    assert pair_kernels.backend_for("laplacian", values, pos) is ops._laplacian_compiled
+    handed = _handed_to(monkeypatch, "_laplacian_torch")
+    constants = (re, 54.3, 3.24 * L0**2, 3, 600)
+    ops._laplacian_compiled(ei, ops.edge_geometry(pos, ei)[1], values, *constants)
+    assert handed == []
     shuffled = ei[:, torch.randperm(ei.shape[1], generator=gen)]
-    assert (
-        ops._compiled_laplacian(shuffled, ops.edge_geometry(pos, shuffled)[1], values, re, 1.0, 600) is None
-    )
-    assert ops._compiled_laplacian(ei, ops.edge_geometry(pos, ei)[1], values, re, 1.0, 600) is not None
+    ops._laplacian_compiled(shuffled, ops.edge_geometry(pos, shuffled)[1], values, *constants)
+    assert len(handed) == 1
     bad = ei.clone()
-    bad[0, 5] = 600  # a source beyond the values: declined here, reported by the torch path
-    assert ops._compiled_laplacian(bad, ops.edge_geometry(pos, ei)[1], values, re, 1.0, 600) is None
+    bad[0, 5] = 600  # a source beyond the values: handed over, reported by the torch body
+    with pytest.raises((IndexError, RuntimeError)):
+        ops._laplacian_compiled(bad, ops.edge_geometry(pos, ei)[1], values, *constants)
+    assert len(handed) == 2
     with pytest.raises((IndexError, RuntimeError)):
         ops.laplacian(pos, bad, values, re, 54.3, 3.24 * L0**2, geometry=ops.edge_geometry(pos, ei))
 
@@ -618,8 +637,8 @@ def test_compiled_laplacian_equals_the_torch_operations(monkeypatch, dtype, chan
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 @pytest.mark.parametrize("include_self", [True, False])
 def test_compiled_min_pressure_gradient_equals_the_torch_operations(monkeypatch, dtype, include_self):
-    # One compiled pass per row gives the torch path's numbers to the bit, into a prefix of the rows too, with
-    # sources left out as the torch path drops their edges (the dummy walls), and declines unsorted graphs.
+    # One compiled pass per row gives the torch body's numbers to the bit, into a prefix of the rows too, with
+    # sources left out as the torch body drops their edges (the dummy walls); unsorted graphs go to it.
     gen = torch.Generator().manual_seed(8)
     pos = torch.rand(600, 3, generator=gen, dtype=dtype) * 0.4
     re = 2.1 * L0
@@ -647,9 +666,9 @@ def test_compiled_min_pressure_gradient_equals_the_torch_operations(monkeypatch,
         )
         fast = grad()
         with monkeypatch.context() as m:
-            m.setattr(ops, "_compiled_min_gradient", lambda *a: None)
+            _torch_only(m)
             slow = grad()
-            if src is not None:  # and the torch path with sources is the graph without those edges
+            if src is not None:  # and the torch body with sources is the graph without those edges
                 kept = e[:, src[e[0]]]
                 plain = ops.min_pressure_gradient(
                     x, kept, pr, re, N0_21, include_self=include_self, num_nodes=rows
@@ -657,10 +676,14 @@ def test_compiled_min_pressure_gradient_equals_the_torch_operations(monkeypatch,
                 assert torch.equal(slow, plain)
         assert fast.shape == slow.shape and torch.equal(fast, slow)
         assert bool((fast != 0).any())
+    assert pair_kernels.backend_for("min_pressure_gradient", pos, p) is ops._min_gradient_compiled
+    handed = _handed_to(monkeypatch, "_min_gradient_torch")
+    args = (re, N0_21, 3, include_self, 600, None, None)
+    ops._min_gradient_compiled(pos, ei, p, *args)
+    assert handed == []
     shuffled = ei[:, torch.randperm(ei.shape[1], generator=gen)]
-    args = (re, 1.0, include_self, 600, None, None)
-    assert ops._compiled_min_gradient(pos, shuffled, p, *args) is None
-    assert ops._compiled_min_gradient(pos, ei, p, *args) is not None
+    ops._min_gradient_compiled(pos, shuffled, p, *args)
+    assert len(handed) == 1
     nan = p.clone()
     nan[ei[0, 0]] = float("nan")
     assert bool(torch.isnan(ops.min_pressure_gradient(pos, ei, nan, re, N0_21)[ei[1, 0]]).all())
@@ -677,11 +700,16 @@ def test_compiled_number_density_equals_the_torch_operations(monkeypatch, dtype)
     for e, rows in ((ei, None), (ei[:, ei[1] < 250], 250), (ei[:, :0], None)):
         fast = ops.number_density(pos, e, re, num_nodes=rows)
         with monkeypatch.context() as m:
-            m.setattr(ops, "_compiled_number_density", lambda *a: None)
+            _torch_only(m)
             slow = ops.number_density(pos, e, re, num_nodes=rows)
         assert fast.shape == slow.shape and torch.equal(fast, slow)
+    assert pair_kernels.backend_for("number_density", pos) is ops._number_density_compiled
+    handed = _handed_to(monkeypatch, "_number_density_torch")
+    ops._number_density_compiled(ei, ops.edge_geometry(pos, ei)[1], re, 601, 601)
+    assert handed == []
     shuffled = ei[:, torch.randperm(ei.shape[1], generator=gen)]
-    assert ops._compiled_number_density(shuffled, ops.edge_geometry(pos, shuffled)[1], re, 601, 601) is None
+    ops._number_density_compiled(shuffled, ops.edge_geometry(pos, shuffled)[1], re, 601, 601)
+    assert len(handed) == 1
 
 
 @pytest.mark.skipif(ops._operator_kernels() is None, reason="numba not installed")
@@ -694,9 +722,13 @@ def test_compiled_kernel_equals_the_torch_operations(monkeypatch, dtype):
     )
     fast = ops.kernel(dist, re)
     with monkeypatch.context() as m:
-        m.setattr(ops, "_compiled_kernel", lambda *a: None)
+        _torch_only(m)
         slow = ops.kernel(dist, re)
     assert torch.equal(fast, slow) and fast.dtype == dtype
+    handed = _handed_to(monkeypatch, "_kernel_torch")
+    ops._kernel_compiled(dist, re)
+    ops._kernel_compiled(dist[:100], re)  # a few pairs: the torch body, cheaper than a call
+    assert [a[0].numel() for a in handed] == [100]
     assert float(fast[-3:].abs().sum()) == 0.0 and bool((fast > 0).any())
 
 
@@ -705,7 +737,7 @@ def test_compiled_kernel_equals_the_torch_operations(monkeypatch, dtype):
 def test_the_check_pass_fills_the_row_pointer_searchsorted_would(n, e):
     import numpy as np
 
-    kern = ops._operator_kernels()
+    kern = pair_kernels.load(csr.NUMBA)
     rng = np.random.default_rng(n + e)
     # empty rows at both ends and in the middle (targets drawn from a part of 0..n-1), several chunks
     dst = np.sort(rng.integers(n // 3, max(n // 3 + 1, n - n // 4), e))

@@ -10,11 +10,11 @@ import h5py
 import pytest
 from hydra import compose, initialize_config_dir
 
-from lagfluid.config import job_folder
 from lagfluid.errors import LagfluidError
-from lagfluid.outputs import part_path
 from lagfluid.run import CONF_DIR
-from lagfluid.simulate import simulate
+from lagfluid.tasks.config import job_folder
+from lagfluid.tasks.outputs import part_path
+from lagfluid.tasks.simulate import simulate
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -163,7 +163,7 @@ def test_the_job_folder_rule(tmp_path, task, overrides, folder):
     from hydra.types import RunMode
     from omegaconf import open_dict
 
-    from lagfluid.config import multirun_out_dir
+    from lagfluid.tasks.config import multirun_out_dir
 
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         cfg = compose(

@@ -6,9 +6,8 @@ import sys
 import pytest
 import torch
 
-from lagfluid import pair_kernels
-from lagfluid.neighbor_list import VerletNeighborList
-from lagfluid.neighbors import edge_vectors
+from lagfluid.neighbors import edge_vectors, pair_kernels
+from lagfluid.neighbors.verlet import VerletNeighborList
 from lagfluid.scenes import build_scene
 
 pytestmark = pytest.mark.skipif(not pair_kernels.available(), reason="numba not installed")

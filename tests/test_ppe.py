@@ -10,6 +10,7 @@ import pytest
 import torch
 from scipy.spatial import cKDTree
 
+from lagfluid.neighbors import pair_kernels
 from lagfluid.physics.ppe import PPEInfo, assemble_ppe, ppe_residual, ppe_source, solve_ppe
 from lagfluid.physics.ppe import solve as ppe_solve
 from lagfluid.physics.ppe import system as ppe_system
@@ -533,7 +534,7 @@ def _csr_arrays(system):
     return m.crow_indices(), m.col_indices(), m.values(), system.isolated, system.index
 
 
-@pytest.mark.skipif(not ppe_system._compiled_assembly_applies(torch.zeros(1)), reason="numba not installed")
+@pytest.mark.skipif(ppe_system._ppe_kernels() is None, reason="numba not installed")
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 @pytest.mark.parametrize("case", ["tank", "blob", "enclosed", "empty_row", "zero_weights"])
 def test_compiled_assembly_equals_the_torch_assembly(monkeypatch, caplog, dtype, case):
@@ -557,7 +558,8 @@ def test_compiled_assembly_equals_the_torch_assembly(monkeypatch, caplog, dtype,
         coef[edge_index[1] == edge_index[0][::7][0]] = 0.0
     caplog.set_level(logging.WARNING, logger="lagfluid.physics.ppe")
     compiled = assemble_ppe(edge_index, coef, solve, RHO, dirichlet_mask=dirichlet, check=False)
-    monkeypatch.setattr(ppe_system, "_compiled_assembly_applies", lambda coef: False)
+    assert pair_kernels.backend_for("ppe_assembly", coef) is ppe_system._assemble_compiled
+    monkeypatch.setattr(pair_kernels, "applies", lambda *tensors: False)  # every torch (or SciPy) body
     reference = assemble_ppe(edge_index, coef, solve, RHO, dirichlet_mask=dirichlet, check=False)
     for got, want in zip(_csr_arrays(compiled), _csr_arrays(reference), strict=True):
         assert got.dtype == want.dtype and torch.equal(got, want)

@@ -7,12 +7,12 @@ from torch_geometric.data import Batch
 
 from lagfluid.data.datasets import PressureSamples
 from lagfluid.errors import ConfigError, LagfluidError
-from lagfluid.generate import generate
 from lagfluid.models.checkpoint import read_checkpoint
 from lagfluid.models.fgn.ppe_term import LABEL_TOLERANCE, WithPPESystem, ppe_residual_rows
 from lagfluid.models.fgn.trainables import PressureTrainable
 from lagfluid.run import CONF_DIR
-from lagfluid.train import train
+from lagfluid.tasks.generate import generate
+from lagfluid.tasks.train import train
 
 
 def _compose(*overrides):

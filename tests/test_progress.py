@@ -135,7 +135,7 @@ def test_a_rollout_restarts_the_eta_clock_after_its_first_step(monkeypatch):
 
 
 def test_a_cold_kernel_cache_is_announced_once_before_compiling(tmp_path, monkeypatch, caplog):
-    from lagfluid import pair_kernels
+    from lagfluid.neighbors import pair_kernels
 
     for name in ("cold_kernels_probe", "cold_kernels_probe_2"):
         (tmp_path / f"{name}.py").write_text(
@@ -143,7 +143,7 @@ def test_a_cold_kernel_cache_is_announced_once_before_compiling(tmp_path, monkey
         )
     monkeypatch.syspath_prepend(str(tmp_path))
     monkeypatch.setattr(pair_kernels, "_announced", [])
-    with caplog.at_level(logging.INFO, logger="lagfluid.pair_kernels"):
+    with caplog.at_level(logging.INFO, logger="lagfluid.neighbors.pair_kernels"):
         kernels = pair_kernels.load("cold_kernels_probe")  # nothing compiled yet: said before the first call
     assert [r.getMessage() for r in caplog.records] == [
         f"compiling the CPU kernels once, ~{pair_kernels.COMPILE_SECONDS} s; cached afterwards "
@@ -153,6 +153,6 @@ def test_a_cold_kernel_cache_is_announced_once_before_compiling(tmp_path, monkey
     assert kernels.twice(21) == 42  # compiled and cached on disk
     assert pair_kernels.uncached_kernels(kernels) is None  # the next run loads it: nothing to announce
     caplog.clear()
-    with caplog.at_level(logging.INFO, logger="lagfluid.pair_kernels"):
+    with caplog.at_level(logging.INFO, logger="lagfluid.neighbors.pair_kernels"):
         second = pair_kernels.load("cold_kernels_probe_2")  # cold too: announced once per process at most
     assert pair_kernels.uncached_kernels(second) is not None and not caplog.records

@@ -14,10 +14,10 @@ from baselines.gns.simulator import SHIPPED as GNS_SHIPPED
 from lagfluid.models.checkpoint import read_checkpoint
 from lagfluid.models.fgn.networks import owned_stages
 from lagfluid.models.fgn.simulator import WEIGHTS_ROOT
-from lagfluid.multirun_timer import FILE_NAME, MultirunTimer
 from lagfluid.registry import get_trainables
 from lagfluid.retrain import retrain_arguments, retrain_experiments
 from lagfluid.run import CONF_DIR
+from lagfluid.tasks.multirun_timer import FILE_NAME, MultirunTimer
 
 REPO = CONF_DIR.parents[1]  # lagfluid/conf -> the repository root
 
@@ -88,7 +88,7 @@ def test_multirun_timer_writes_the_total_wall_time_into_the_sweep_dir(tmp_path):
 def test_the_retrain_command_trains_exports_and_times_a_sweep(tmp_path):
     data = tmp_path / "data"
     gen = _compose("task=generate", "scene=random", "data=tiny", f"data.out_dir={data}", "progress=false")
-    from lagfluid.generate import generate
+    from lagfluid.tasks.generate import generate
 
     generate(gen)
     sweep, exported = tmp_path / "sweep", tmp_path / "weights"

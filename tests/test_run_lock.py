@@ -13,10 +13,10 @@ from pathlib import Path
 import pytest
 from hydra import compose, initialize_config_dir
 
-from lagfluid.locks import OutputsInUse, hold_outputs, lock_path
-from lagfluid.outputs import part_path, publish
 from lagfluid.run import CONF_DIR
-from lagfluid.simulate import simulate
+from lagfluid.tasks.locks import OutputsInUse, hold_outputs, lock_path
+from lagfluid.tasks.outputs import part_path, publish
+from lagfluid.tasks.simulate import simulate
 
 REPO = Path(__file__).resolve().parents[1]
 ENV = {**os.environ, "OMP_NUM_THREADS": "1"}
@@ -41,7 +41,7 @@ class _Holder:
 
     def __init__(self, folder: Path, task: str = "simulate", units: tuple[str, ...] = ("",)) -> None:
         code = (
-            "import sys; from pathlib import Path; from lagfluid.locks import hold_outputs\n"
+            "import sys; from pathlib import Path; from lagfluid.tasks.locks import hold_outputs\n"
             f"with hold_outputs(Path({str(folder)!r}), {task!r}, {units!r}):\n"
             "    print('held', flush=True); sys.stdin.read()\n"
         )
@@ -98,9 +98,9 @@ def test_a_lock_left_by_a_killed_run_is_taken_over_and_logged(tmp_path, caplog):
     holder = _Holder(out)
     holder.kill()  # kill -9: its lock file stays, its lock does not
     assert str(holder.proc.pid) in lock_path(out).read_text()
-    with caplog.at_level(logging.WARNING, logger="lagfluid.locks"):
+    with caplog.at_level(logging.WARNING, logger="lagfluid.tasks.locks"):
         assert simulate(_compose("steps=2", f"out_dir={out}"))["complete"]
-    [record] = [r for r in caplog.records if r.name == "lagfluid.locks"]
+    [record] = [r for r in caplog.records if r.name == "lagfluid.tasks.locks"]
     assert f"took over the lock of pid {holder.proc.pid} on " in record.getMessage()
     assert "which ended without releasing it" in record.getMessage()
     assert not lock_path(out).exists()
@@ -122,10 +122,10 @@ def test_units_of_one_folder_lock_apart_and_a_refusal_keeps_none(tmp_path):
 
 def test_every_task_that_writes_takes_its_lock(tmp_path):
     """export, evaluate, train and generate are refused while another run holds what they would write."""
-    from lagfluid.evaluate import evaluate
-    from lagfluid.export import export_task
-    from lagfluid.generate import generate
-    from lagfluid.train import train
+    from lagfluid.tasks.evaluate import evaluate
+    from lagfluid.tasks.export import export_task
+    from lagfluid.tasks.generate import generate
+    from lagfluid.tasks.train import train
 
     run, train_dir, data_dir = tmp_path / "run", tmp_path / "train", tmp_path / "data"
     simulate(_compose("steps=2", f"out_dir={run}"))
@@ -163,8 +163,8 @@ def test_every_task_that_writes_takes_its_lock(tmp_path):
 
 
 def test_an_evaluation_waiting_for_a_held_reference_says_for_what_and_whom(tmp_path, caplog):
-    from lagfluid.evaluate.options import EvaluateOptions
-    from lagfluid.evaluate.reference import key_hash, reference_key, reference_rollout
+    from lagfluid.tasks.evaluate.options import EvaluateOptions
+    from lagfluid.tasks.evaluate.reference import key_hash, reference_key, reference_rollout
 
     cfg = _compose("model=mps", "steps=2", f"evaluate.reference_dir={tmp_path}")
     folder = tmp_path / f"{cfg.scene.name}-{key_hash(reference_key(cfg))}"

@@ -15,11 +15,11 @@ import numpy as np
 import pytest
 from hydra import compose, initialize_config_dir
 
-import lagfluid.simulate as simulate_module
+import lagfluid.tasks.simulate as simulate_module
 from lagfluid.errors import RolloutError
 from lagfluid.run import CONF_DIR
-from lagfluid.simulate import simulate
-from lagfluid.simulate_resume import CHECKPOINT
+from lagfluid.tasks.simulate import simulate
+from lagfluid.tasks.simulate_resume import CHECKPOINT
 
 REPO = Path(__file__).resolve().parents[1]
 FRAME_ARRAYS = ("time", "position", "velocity", "pressure")

@@ -7,7 +7,6 @@ import torch
 from hydra import compose, initialize_config_dir
 
 from lagfluid import registry
-from lagfluid.config import build_simulator
 from lagfluid.errors import ConfigError
 from lagfluid.models.mps_simulator import build_mps
 from lagfluid.models.simulator import check_simulator
@@ -15,8 +14,9 @@ from lagfluid.physics.step_context import SplitStepFields
 from lagfluid.rollout import rollout
 from lagfluid.run import CONF_DIR
 from lagfluid.scenes import build_scene
-from lagfluid.simulate import simulate
 from lagfluid.state import ParticleState
+from lagfluid.tasks.config import build_simulator
+from lagfluid.tasks.simulate import simulate
 
 
 def _compose(*overrides):

@@ -86,10 +86,10 @@ def test_a_float64_run_far_from_the_origin_stores_its_exact_positions(tmp_path):
     from hydra import compose, initialize_config_dir
     from omegaconf import OmegaConf
 
-    from lagfluid.evaluate import evaluate
     from lagfluid.run import CONF_DIR
     from lagfluid.scenes import build_scene
-    from lagfluid.simulate import simulate
+    from lagfluid.tasks.evaluate import evaluate
+    from lagfluid.tasks.simulate import simulate
 
     near = build_scene("dam", fluid_size=[8, 8, 10], tank_size=[21, 9], dtype=torch.float64)
     pos = near.pos.numpy() + np.array([1e6, 0.0, 0.0])

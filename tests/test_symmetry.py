@@ -8,11 +8,11 @@ import pytest
 import torch
 from hydra import compose, initialize_config_dir
 
-from lagfluid.config import build_initial_state
 from lagfluid.data.symmetry import HorizontalSymmetry
 from lagfluid.models.mps_simulator import build_mps
 from lagfluid.run import CONF_DIR
 from lagfluid.state import ParticleState
+from lagfluid.tasks.config import build_initial_state
 
 ALL = [HorizontalSymmetry(*bits) for bits in itertools.product([False, True], repeat=3)]
 BOX = torch.tensor([[0.5, -1.0, 0.0], [2.5, 3.0, 1.5]], dtype=torch.float64)

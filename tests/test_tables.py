@@ -18,8 +18,8 @@ from benchmarks.tables.profiles import QUICK
 from benchmarks.tables.report import MARK_END, MARK_START, write_readme
 from benchmarks.tables.rows import status
 from lagfluid.errors import ConfigError
-from lagfluid.evaluate import EvaluateOptions, key_hash, reference_key, reference_settings
 from lagfluid.run import CONF_DIR
+from lagfluid.tasks.evaluate import EvaluateOptions, key_hash, reference_key, reference_settings
 
 
 # ------------------------------------------------------------------------------------------- Pareto front
@@ -112,7 +112,7 @@ def test_the_gns_rows_run_alone_are_compared_with_the_default_mps_of_their_case(
     reference of the MPS rows (steps and frames times 4 at 2 ms)."""
     from types import SimpleNamespace
 
-    from lagfluid.evaluate.task import reference_overrides
+    from lagfluid.tasks.evaluate.task import reference_overrides
 
     gns = SimpleNamespace(dt=0.008, name="gns")  # the simulator's dt is all the reference depends on
     for case in ("dam", "waterfall"):

@@ -1,4 +1,4 @@
-"""The generic trainer and the trainables registry: nothing in lagfluid/train.py names a model (seconds)."""
+"""The generic trainer and the trainables registry: lagfluid/tasks/train.py names no model (seconds)."""
 
 import csv
 import hashlib
@@ -15,13 +15,13 @@ from torch_geometric.data import Data
 from lagfluid import registry
 from lagfluid.data.datasets import load_metadata
 from lagfluid.errors import ConfigError
-from lagfluid.generate import generate
 from lagfluid.models.checkpoint import read_checkpoint
 from lagfluid.models.trainable import Trainable
 from lagfluid.progress import progress_bar
 from lagfluid.registry import UnknownNameError, get_trainables, trainable_models
 from lagfluid.run import CONF_DIR
-from lagfluid.train import CSV_HEADER, Trainer, train
+from lagfluid.tasks.generate import generate
+from lagfluid.tasks.train import CSV_HEADER, Trainer, train
 
 
 def _compose(*overrides):

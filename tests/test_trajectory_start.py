@@ -11,12 +11,12 @@ import torch
 from hydra import compose, initialize_config_dir
 
 from lagfluid import registry
-from lagfluid.config import build_initial_state, initial_history
 from lagfluid.data.store import TrajectoryWriter, read_trajectory
 from lagfluid.errors import ConfigError, SceneError
 from lagfluid.run import CONF_DIR
-from lagfluid.simulate import simulate
 from lagfluid.state import ParticleState
+from lagfluid.tasks.config import build_initial_state, initial_history
+from lagfluid.tasks.simulate import simulate
 
 STEPS = 8  # the original rollout: frames 0 .. 8, every step (write_every=1)
 
@@ -149,7 +149,7 @@ def test_reset_receives_the_frames_before_k(original, history_model, tmp_path, f
 def test_no_history_for_scenes_built_from_scratch(history_model):
     cfg = _compose("experiment=debug")
     cfg.model.name = "history2"
-    from lagfluid.config import build_simulator
+    from lagfluid.tasks.config import build_simulator
 
     assert initial_history(cfg, build_simulator(cfg)) == []
 
@@ -207,8 +207,8 @@ def test_missing_or_foreign_files_are_clear_errors(tmp_path):
 
 # ------------------------------------------------------------------------- evaluate: the same frame t
 def test_evaluate_starts_model_and_reference_at_frame_k(original, tmp_path):
-    from lagfluid.evaluate.reference import reference_key
-    from lagfluid.evaluate.task import evaluate
+    from lagfluid.tasks.evaluate.reference import reference_key
+    from lagfluid.tasks.evaluate.task import evaluate
 
     path, traj = original
     k = 4

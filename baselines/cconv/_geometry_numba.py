@@ -1,6 +1,6 @@
 """Numba kernels behind :func:`baselines.cconv.conv.conv_geometry`'s blocks of kernel cells (CPU only).
 
-Loaded lazily through :func:`lagfluid.pair_kernels.load`; compiled on first use and cached on disk.
+Loaded lazily through :func:`lagfluid.neighbors.pair_kernels.load`; compiled on first use and cached on disk.
 """
 
 import numpy as np

@@ -208,6 +208,48 @@ def conv_pairs(
     return torch.stack([edges[0], edges[1] - n_in])
 
 
+def _block_entries_torch(
+    i: Tensor, j: Tensor, cell: Tensor, w: Tensor, counts: Tensor, lo: int, hi: int, n_out: int
+) -> tuple[Tensor, Tensor, Tensor]:
+    """The CSR ``(crow (n_out + 1,), cols, vals)`` of the kernel cells ``[lo, hi)`` of every pair.
+
+    Args:
+        i: (E,) each pair's output point.
+        j: (E,) each pair's input point.
+        cell: (E, 8) the kernel cells of each pair's 8 corners.
+        w: (E, 8) their weights.
+        counts: (n_out,) pairs per output point.
+        lo: the block's first kernel cell.
+        hi: the block's past-last kernel cell.
+        n_out: output points.
+    """
+    inside = (cell >= lo) & (cell < hi)  # (E, 8)
+    crow = torch.zeros(n_out + 1, dtype=torch.long, device=i.device)
+    crow[1:] = torch.cumsum(torch.zeros_like(counts).index_add_(0, i, inside.sum(1)), 0)
+    return crow, (j[:, None] * (hi - lo) + (cell - lo))[inside], w[inside]
+
+
+def _block_entries_compiled(
+    i: Tensor, j: Tensor, cell: Tensor, w: Tensor, counts: Tensor, lo: int, hi: int, n_out: int
+) -> tuple[Tensor, Tensor, Tensor]:
+    """:func:`_block_entries_torch` in one compiled pass each to count and to fill (the same entries).
+
+    Instead of an (E, 8) mask, its nonzero and two gathers: 40k's geometry 0.73-0.77 -> 0.29-0.30 s a step
+    (``benchmarks/results/fgn_step_speed.md``).
+    """
+    pair_kernels.set_threads()
+    arrays = (t.contiguous().numpy() for t in (i, j, cell, w))
+    entries = pair_kernels.load(_NUMBA).block_entries(*arrays, lo, hi, n_out)
+    crow, cols, vals = (torch.from_numpy(a) for a in entries)
+    return crow, cols, vals
+
+
+_NUMBA = "baselines.cconv._geometry_numba"
+pair_kernels.register(
+    "cconv_block_entries", compiled=_block_entries_compiled, torch=_block_entries_torch, module=_NUMBA
+)
+
+
 @torch.no_grad()
 def conv_geometry(
     inp_pos: Tensor,
@@ -273,24 +315,15 @@ def conv_geometry(
     if chunk_cells is None:
         chunk_cells = max(1, min(cells, (1 << 21) // max(n_in, 1)))
     chunks, splits = [], [*list(range(0, cells, chunk_cells)), cells]
-    compiled = pair_kernels.load("baselines.cconv._geometry_numba") if len(splits) > 2 else None
+    block_entries = pair_kernels.backend_for("cconv_block_entries", cell, w) if len(splits) > 2 else None
     for lo, hi in itertools.pairwise(splits):
         # Row order (by output point) and column order (j, then cell: the corners come x fastest) are kept
-        crow = torch.zeros(n_out + 1, dtype=torch.long, device=i.device)
         if hi - lo == cells:
+            crow = torch.zeros(n_out + 1, dtype=torch.long, device=i.device)
             cols, vals = (j[:, None] * cells + cell).flatten(), w.flatten()
             crow[1:] = torch.cumsum(8 * counts, 0)
-        elif compiled is not None and pair_kernels.applies(cell, w):
-            # one pass each to count and to fill instead of an (E, 8) mask, its nonzero and two gathers
-            # (same entries): 40k's geometry 0.73-0.77 -> 0.29-0.30 s a step
-            # (benchmarks/results/fgn_step_speed.md)
-            pair_kernels.set_threads()
-            arrays = (t.contiguous().numpy() for t in (i, j, cell, w))
-            crow, cols, vals = (torch.from_numpy(a) for a in compiled.block_entries(*arrays, lo, hi, n_out))
         else:
-            inside = (cell >= lo) & (cell < hi)  # (E, 8)
-            crow[1:] = torch.cumsum(torch.zeros_like(counts).index_add_(0, i, inside.sum(1)), 0)
-            cols, vals = (j[:, None] * (hi - lo) + (cell - lo))[inside], w[inside]
+            crow, cols, vals = block_entries(i, j, cell, w, counts, lo, hi, n_out)
         with warnings.catch_warnings():
             warnings.filterwarnings("ignore", message=".*Sparse CSR tensor support is in beta.*")
             chunks.append(

@@ -147,8 +147,8 @@ class GNSSimulator:
     def rollout_memory(self) -> dict[str, torch.Tensor]:
         """What the rollout carries beyond the state: the velocity history (Nf, H, 3), for a resume.
 
-        A resumed run (:mod:`lagfluid.simulate_resume`) restores it bit for bit; velocities rebuilt from the
-        stored positions differ from the integrated ones in the last bits.
+        A resumed run (:mod:`lagfluid.tasks.simulate_resume`) restores it bit for bit; velocities rebuilt from
+        the stored positions differ from the integrated ones in the last bits.
         """
         if self._velocities is None or self._warm_frames:
             return {}
@@ -257,8 +257,8 @@ def seconds_of(buffer: torch.Tensor) -> float:
 
     The buffer is float32 (or float32 cast up): its nearest float64 differs from the decimal by up to 6e-8
     relative, and the frames' times ``k dt`` must land on the reference's grid (to 1e-6 of its 2 ms step,
-    :func:`lagfluid.evaluate.compare.common_frames`). The shortest decimal that rounds to the same float32 is
-    the one written.
+    :func:`lagfluid.tasks.evaluate.compare.common_frames`). The shortest decimal that rounds to the same
+    float32 is the one written.
     """
     return float(str(np.float32(float(buffer))))
 

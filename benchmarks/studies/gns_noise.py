@@ -27,7 +27,7 @@ from benchmarks.provenance import markdown_table, provenance, write_results
 from benchmarks.tables.config import compose_config
 from lagfluid.data.datasets import load_metadata
 from lagfluid.models.checkpoint import read_checkpoint
-from lagfluid.train import train
+from lagfluid.tasks.train import train
 
 RESULTS = Path(__file__).resolve().parents[1] / "results"  # benchmarks/results, where its results are cited
 

@@ -11,9 +11,9 @@ Every row is a Hydra experiment file (``conf/experiment/<name>.yaml``: ``python 
 experiment=table3_dam_fgn`` runs that row alone at the full profile); this script composes them in-process
 (Hydra's compose API) and runs them one after another in one process, so every timing is taken under the
 same conditions. A profile adds overrides (scene, steps, frames, dt) to each row; every row's complete
-override list is written beside its numbers. Accuracy rows run ``task=evaluate`` (:mod:`lagfluid.evaluate`:
-the model and the MPS reference from the same initial state, metrics per stored frame), so every number
-comes from :mod:`lagfluid.metrics`.
+override list is written beside its numbers. Accuracy rows run ``task=evaluate``
+(:mod:`lagfluid.tasks.evaluate`: the model and the MPS reference from the same initial state, metrics per
+stored frame), so every number comes from :mod:`lagfluid.metrics`.
 
 The simulators compared are the registered ones plus their row files (``table2_<key>``,
 ``table3_<case>_<key>``, each with a ``table: {label, order, weights, note}`` block; a key appears in the

@@ -1,7 +1,7 @@
 """Running the tables' rows: each row composed from its row file plus a profile's overrides, run once.
 
-Accuracy rows run ``task=evaluate`` (:mod:`lagfluid.evaluate`: the model and the MPS reference from the same
-initial state, metrics per stored frame), so every number comes from :mod:`lagfluid.metrics`; Table 2's
+Accuracy rows run ``task=evaluate`` (:mod:`lagfluid.tasks.evaluate`: the model and the MPS reference from the
+same initial state, metrics per stored frame), so every number comes from :mod:`lagfluid.metrics`; Table 2's
 rows are timed steps in this process. A failed row is recorded, not raised; a row whose model's weights
 file is missing (:class:`~lagfluid.models.checkpoint.MissingWeightsError`) is recorded as *skipped* with
 the loader's reason and does not count as failed.
@@ -39,11 +39,11 @@ from benchmarks.tables.simulators import (
     all_simulators,
     simulator,
 )
-from lagfluid.config import at_simulator_time_step, build_initial_state, build_simulator, run_guard
 from lagfluid.errors import ConfigError
-from lagfluid.evaluate import evaluate
 from lagfluid.models.checkpoint import MissingWeightsError
 from lagfluid.rollout import rollout
+from lagfluid.tasks.config import at_simulator_time_step, build_initial_state, build_simulator, run_guard
+from lagfluid.tasks.evaluate import evaluate
 
 log = logging.getLogger("benchmarks.tables")
 

@@ -38,10 +38,10 @@ from benchmarks.tables.report import (
     write_readme,
 )
 from benchmarks.tables.simulators import FGN, GROUND_TRUTH
-from lagfluid.config import run_device
 from lagfluid.errors import ConfigError
 from lagfluid.memory import keep_freed_memory
 from lagfluid.models.fgn.simulator import SHIPPED_WEIGHTS
+from lagfluid.tasks.config import run_device
 
 
 def run_all(profile: Profile, args: argparse.Namespace) -> dict[str, Any]:

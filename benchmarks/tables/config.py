@@ -69,7 +69,7 @@ def coarsened_scene(scene: DictConfig, factor: int) -> dict[str, Any]:
     The built scenes put the inner wall layers on x, y, z = 0 and ``tank_size * l0``, and a particle stands
     for a cube of side l0, so the fluid fills ``fluid_size * l0`` and the tank's inner surfaces are
     ``(tank_size - 1) * l0`` apart. Keeping both (and the wall height, ``2 * fluid_size[2]`` by default)
-    gives the same physical scene, shifted by ``(factor - 1) * l0 / 2``, which :mod:`lagfluid.evaluate`
+    gives the same physical scene, shifted by ``(factor - 1) * l0 / 2``, which :mod:`lagfluid.tasks.evaluate`
     undoes when it compares runs at different spacings.
 
     Raises:

@@ -90,7 +90,7 @@ class _SceneDataset(Dataset):
     """
 
     # True for datasets whose targets are the trajectory itself: an on-policy dataset's trajectory is a
-    # learned model's, not the solver's (lagfluid.generate.policy), so they refuse it
+    # learned model's, not the solver's (lagfluid.tasks.generate.policy), so they refuse it
     solver_trajectories_only = False
     # False for datasets that read the trajectory alone: they also take a trajectory dataset (converted from
     # LagrangeBench or DeepMind, metadata "samples": false, lagfluid.data.convert)

@@ -2,7 +2,7 @@
 
 An end-to-end model (GNS) trained on MPS's trajectories meets, in its own rollouts, states MPS never visits
 (fluid drifting into a wall) and extrapolates there. A DAgger dataset (Ross, Gordon and Bagnell 2011;
-written by :mod:`lagfluid.generate.expert`) rolls the model out on the training scenes and, every
+written by :mod:`lagfluid.tasks.generate.expert`) rolls the model out on the training scenes and, every
 ``every``-th frame the model made, lets the MPS solver advance one model step (``substeps`` solver steps)
 from the model's positions ``x_t`` and the velocity its frames imply, ``v_t = (x_t - x_{t-1}) / frame_dt``.
 Trained on ``(model's frames ..., x_t) -> x_{t+1}^MPS``, the integrator's inverse (GNS:
@@ -190,7 +190,7 @@ class ExpertStepWindows(ExpertWindows):
         before, now = g["position"][t - 1], g["position"][t]
         a = self.infos[file].attrs
         every = int(a["sample_every"])
-        # the frames' velocity, as MPS started from it (lagfluid.generate.expert.expert_step)
+        # the frames' velocity, as MPS started from it (lagfluid.tasks.generate.expert.expert_step)
         vel = velocity_from_positions(torch.from_numpy(before), torch.from_numpy(now), float(a["dt"]) * every)
         y = labels["position"][row][:, None]
         if self.steps > 1:

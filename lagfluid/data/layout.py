@@ -1,7 +1,7 @@
 """The on-disk layout of a generated dataset: scene files, splits and ``metadata.json`` names.
 
 Formats only (``data/`` holds formats, tasks live above it: ``docs/architecture.md#layers``):
-:mod:`lagfluid.generate` writes this layout, :mod:`lagfluid.data.datasets` reads it. ::
+:mod:`lagfluid.tasks.generate` writes this layout, :mod:`lagfluid.data.datasets` reads it. ::
 
     DIR/                                 data.out_dir (default data/<profile>)
       scenes/scene_00007.h5              scene k (layout below)

@@ -92,7 +92,7 @@ class Simulator(Protocol):
     #   restore_rollout_memory(state, memory) -> None  after reset(state, history): take it back
     # Without them a resumed run calls reset(state, history) with the states before the checkpoint.
     #
-    # Optional, for the memory check before a CPU rollout (lagfluid.config.check_run_memory):
+    # Optional, for the memory check before a CPU rollout (lagfluid.tasks.config.check_run_memory):
     #   memory_needed(state) -> float   peak bytes a rollout from state needs (lagfluid.memory.rollout_bytes
     #                                   with the simulator's neighbour radius and measured bytes per pair)
     # Without it the run is estimated as MPS is.

@@ -2,7 +2,7 @@
 
 A model contributes one or more trainables (FGN: one per learned stage; an end-to-end model such as GNS:
 one) through the registry (:func:`lagfluid.registry.get_trainables`). The generic loop in
-:mod:`lagfluid.train` owns the schedule, resume, logging, checkpoints and validation; a trainable owns
+:mod:`lagfluid.tasks.train` owns the schedule, resume, logging, checkpoints and validation; a trainable owns
 everything that depends on the model: which data it learns from, how its inputs are built, what it
 predicts and in which units.
 

@@ -32,7 +32,7 @@ def training_range(
 
     Args:
         data_dirs: the datasets a network trained on (``data.out_dir`` and ``train.extra_data``).
-        identity: the training run's identity (:func:`lagfluid.train.train_one`); ``materials`` with
+        identity: the training run's identity (:func:`lagfluid.tasks.train.train_one`); ``materials`` with
             ``resample`` true replaces the scenes' gravity and viscosity by the drawn ranges.
         quantities: the ones that matter to the network (a trainable's ``range_quantities``: FGN's
             collision net learns from collision-only systems without gravity or viscosity).

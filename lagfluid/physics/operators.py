@@ -19,13 +19,15 @@ The MPS weight (Koshizuka & Oka 1996) is ``w(r) = re / r - 1`` for ``1e-8 < r < 
 from __future__ import annotations
 
 from types import ModuleType
-from typing import Any
 
 import numpy as np
 import torch
 from torch import Tensor
 
-from lagfluid.neighbors import edge_vectors
+from lagfluid.neighbors import pair_kernels
+from lagfluid.neighbors.csr import sorted_rows
+from lagfluid.neighbors.geometry import edge_vectors
+from lagfluid.neighbors.pair_kernels import backend_for
 from lagfluid.state import ParticleType
 
 __all__ = [
@@ -62,10 +64,11 @@ def kernel(dist: Tensor, re: float) -> Tensor:
         Weights ``w_ij``, shape (E,), same dtype and device as ``dist``. Differentiable w.r.t. ``dist``
         (no NaN gradients at the excluded pairs).
     """
-    if dist.dim() == 1 and dist.numel() > _COMPILED_KERNEL_MIN:
-        fast = _compiled_kernel(dist, re)
-        if fast is not None:
-            return fast
+    return backend_for("mps_kernel", dist)(dist, re)
+
+
+def _kernel_torch(dist: Tensor, re: float) -> Tensor:
+    """:func:`kernel` in torch operations (any device, differentiable)."""
     valid = (dist > _R_MIN) & (dist < re)
     if not (dist.requires_grad and torch.is_grad_enabled()):
         # The same numbers in fewer passes (the solver's hot path): ``re / t`` on a tensor is evaluated as
@@ -143,10 +146,15 @@ def number_density(
         Number densities, shape (N,). Rows without incoming edges are 0.
     """
     _, dist = edge_geometry(pos, edge_index, geometry)
-    fast = _compiled_number_density(edge_index, dist, re, _num_nodes(pos, num_nodes), pos.shape[0])
-    if fast is not None:
-        return fast
-    return _scatter_sum(kernel(dist, re), edge_index[1], _num_nodes(pos, num_nodes))
+    density = backend_for("number_density", dist)
+    return density(edge_index, dist, re, _num_nodes(pos, num_nodes), pos.shape[0])
+
+
+def _number_density_torch(
+    edge_index: Tensor, dist: Tensor, re: float, num_nodes: int, num_sources: int
+) -> Tensor:
+    """:func:`number_density` from the edge distances (E,) in torch operations: (num_nodes,)."""
+    return _scatter_sum(kernel(dist, re), edge_index[1], num_nodes)
 
 
 def _masked_argmax(n: Tensor, mask: Tensor | None) -> Tensor:
@@ -353,13 +361,25 @@ def min_pressure_gradient(
     Returns:
         Gradient, shape (N, 3). Rows without incoming edges are 0.
     """
-    size = _num_nodes(pos, num_nodes)
-    if not isinstance(n0, Tensor):
-        fast = _compiled_min_gradient(
-            pos, edge_index, pressure, re, dim / n0, include_self, size, geometry, sources
-        )
-        if fast is not None:
-            return fast
+    gradient = backend_for("min_pressure_gradient", pos, pressure, *(geometry or ()))
+    return gradient(
+        pos, edge_index, pressure, re, n0, dim, include_self, _num_nodes(pos, num_nodes), geometry, sources
+    )
+
+
+def _min_gradient_torch(
+    pos: Tensor,
+    edge_index: Tensor,
+    pressure: Tensor,
+    re: float,
+    n0: float | Tensor,
+    dim: int,
+    include_self: bool,
+    size: int,
+    geometry: Geometry | None,
+    sources: Tensor | None,
+) -> Tensor:
+    """:func:`min_pressure_gradient` in torch operations (any device, differentiable): (size, 3)."""
     if sources is not None:
         edge_index, geometry = _from_sources(edge_index, geometry, sources)
     src, dst = edge_index[0], edge_index[1]
@@ -554,24 +574,33 @@ def laplacian(
     Returns:
         Laplacian, same trailing shape as ``values``: (N,) or (N, C). Rows without incoming edges are 0.
     """
-    src, dst = edge_index[0], edge_index[1]
     _, dist = edge_geometry(pos, edge_index, geometry)
-    scale = 2.0 * dim / (lam * n0_lap)
-    if not isinstance(scale, Tensor):
-        fast = _compiled_laplacian(edge_index, dist, values, re, float(scale), _num_nodes(pos, num_nodes))
-        if fast is not None:
-            return fast
+    body = backend_for("laplacian", values, dist)
+    return body(edge_index, dist, values, re, n0_lap, lam, dim, _num_nodes(pos, num_nodes))
+
+
+def _laplacian_torch(
+    edge_index: Tensor,
+    dist: Tensor,
+    values: Tensor,
+    re: float,
+    n0_lap: float | Tensor,
+    lam: float | Tensor,
+    dim: int,
+    num_nodes: int,
+) -> Tensor:
+    """:func:`laplacian` from the edge distances (E,) in torch operations (any device, differentiable)."""
+    src, dst = edge_index[0], edge_index[1]
     coef = laplacian_weights(dist, re, n0_lap, lam, dim)
     diff = values.index_select(0, src) - values.index_select(0, dst)
     terms = diff * coef.view(-1, *([1] * (diff.dim() - 1)))
-    return _scatter_sum(terms, dst, _num_nodes(pos, num_nodes))
+    return _scatter_sum(terms, dst, num_nodes)
 
 
 # ------------------------------------------------------------------------------------------ CPU fast paths
-def _operator_kernels() -> ModuleType | None:
-    from lagfluid import pair_kernels
-
-    return pair_kernels.load("lagfluid.physics._operators_numba")
+def _operator_kernels() -> ModuleType:
+    """The Numba kernels of the operators (a compiled body runs only where they load)."""
+    return pair_kernels.load(_NUMBA)
 
 
 def _from_sources(
@@ -585,58 +614,40 @@ def _from_sources(
     return edge_index.index_select(1, keep), picked
 
 
-def _sorted_rows(edge_index: Tensor, num_sources: int, num_nodes: int) -> tuple[Any, Any, Any] | None:
-    """``(dst, src, row_ptr)`` numpy arrays of a graph sorted by target, or None (unsorted, out of range)."""
-    from lagfluid import pair_kernels
-
-    kern = _operator_kernels()
-    dst, src = edge_index[1].contiguous().numpy(), edge_index[0].contiguous().numpy()
-    pair_kernels.set_threads()
-    row_ptr = np.empty(num_nodes + 1, dtype=np.int64)
-    descents, outside = kern.check_edges(dst, src, num_sources, num_nodes, row_ptr)
-    if descents or outside:
-        return None  # unsorted, or indices out of range (the torch path reports those)
-    return dst, src, row_ptr
-
-
-def _compiled_min_gradient(
+def _min_gradient_compiled(
     pos: Tensor,
     edge_index: Tensor,
     pressure: Tensor,
     re: float,
-    scale: float,
+    n0: float | Tensor,
+    dim: int,
     include_self: bool,
-    num_nodes: int,
+    size: int,
     geometry: Geometry | None,
     sources: Tensor | None,
-) -> Tensor | None:
-    """:func:`min_pressure_gradient` in one compiled pass per target row, or None where it does not apply.
+) -> Tensor:
+    """:func:`min_pressure_gradient` in one compiled pass per target row.
 
-    As :func:`_compiled_laplacian`: CPU, no autograd, edges sorted by target. The torch path's numbers to
-    the bit without its (E, 3) temporaries, the scatter of the minimum and the selection of the edges from
-    ``sources`` (a pass over every edge of the step's largest graph; ``benchmarks/results/fgn_speed.md``).
+    As :func:`_laplacian_compiled`: edges sorted by target, a Python ``n0``, ``pressure`` in the positions'
+    dtype (the torch body takes the rest). The torch body's numbers to the bit without its (E, 3)
+    temporaries, the scatter of the minimum and the selection of the edges from ``sources`` (a pass over
+    every edge of the step's largest graph; ``benchmarks/results/fgn_speed.md``).
     """
-    from lagfluid import pair_kernels
-
-    kern = _operator_kernels()
-    if kern is None or not pair_kernels.applies(pos, pressure) or pressure.dtype != pos.dtype:
-        return None
-    if num_nodes > pressure.shape[0]:
-        return None
-    rows = _sorted_rows(edge_index, pressure.shape[0], num_nodes)
+    args = (pos, edge_index, pressure, re, n0, dim, include_self, size, geometry, sources)
+    if isinstance(n0, Tensor) or pressure.dtype != pos.dtype or size > pressure.shape[0]:
+        return _min_gradient_torch(*args)
+    rows = sorted_rows(edge_index, pressure.shape[0], size)
     if rows is None:
-        return None
+        return _min_gradient_torch(*args)
     _, src, row_ptr = rows
     rel, dist = edge_geometry(pos, edge_index, geometry)
-    if not pair_kernels.applies(rel, dist):
-        return None
     p = pressure.detach().contiguous().numpy()
     mask = sources.contiguous().numpy() if sources is not None else np.ones(1, dtype=np.bool_)
-    out = np.empty((num_nodes, rel.shape[1]), dtype=p.dtype)
+    out = np.empty((size, rel.shape[1]), dtype=p.dtype)
     t = p.dtype.type  # torch rounds Python scalars to the tensor's dtype
     r, d = rel.detach().contiguous().numpy(), dist.detach().contiguous().numpy()
-    kern.min_gradient_rows(
-        src, r, d, p, mask, sources is not None, row_ptr, t(re), t(_R_MIN), t(scale), include_self, out
+    _operator_kernels().min_gradient_rows(
+        src, r, d, p, mask, sources is not None, row_ptr, t(re), t(_R_MIN), t(dim / n0), include_self, out
     )
     return torch.from_numpy(out)
 
@@ -644,71 +655,81 @@ def _compiled_min_gradient(
 _COMPILED_KERNEL_MIN = 4096  # below this many pairs the call costs more than the passes it saves
 
 
-def _compiled_kernel(dist: Tensor, re: float) -> Tensor | None:
-    """:func:`kernel` in one compiled pass (its ~6 elementwise passes fused), the torch path's numbers.
+def _kernel_compiled(dist: Tensor, re: float) -> Tensor:
+    """:func:`kernel` in one compiled pass (its ~6 elementwise passes fused), the torch body's numbers.
 
-    None off the CPU or with autograd.
+    A few pairs (or a ``dist`` of another shape than (E,)) go to the torch body.
     """
-    from lagfluid import pair_kernels
-
-    kern = _operator_kernels()
-    if kern is None or not pair_kernels.applies(dist) or dist.dtype not in (torch.float32, torch.float64):
-        return None
+    if dist.dim() != 1 or dist.numel() <= _COMPILED_KERNEL_MIN:
+        return _kernel_torch(dist, re)
     d = dist.detach().contiguous().numpy()
     out = np.empty_like(d)
     pair_kernels.set_threads()
-    kern.kernel_weights(d, d.dtype.type(re), d.dtype.type(_R_MIN), out)
+    _operator_kernels().kernel_weights(d, d.dtype.type(re), d.dtype.type(_R_MIN), out)
     return torch.from_numpy(out)
 
 
-def _compiled_number_density(
+def _number_density_compiled(
     edge_index: Tensor, dist: Tensor, re: float, num_nodes: int, num_sources: int
-) -> Tensor | None:
-    """:func:`number_density` in one compiled pass per target row, or None where it does not apply.
+) -> Tensor:
+    """:func:`number_density` in one compiled pass per target row.
 
-    As :func:`_compiled_laplacian`: CPU, no autograd, edges sorted by target; the torch path's numbers to
-    the bit without the kernel's ~6 elementwise passes over the edges and the scatter.
+    As :func:`_laplacian_compiled`: edges sorted by target (the torch body takes others); the torch body's
+    numbers to the bit without the kernel's ~6 elementwise passes over the edges and the scatter.
     """
-    from lagfluid import pair_kernels
-
-    kern = _operator_kernels()
-    if kern is None or not pair_kernels.applies(dist):
-        return None
-    rows = _sorted_rows(edge_index, num_sources, num_nodes)
+    rows = sorted_rows(edge_index, num_sources, num_nodes)
     if rows is None:
-        return None
+        return _number_density_torch(edge_index, dist, re, num_nodes, num_sources)
     d = dist.detach().contiguous().numpy()
     out = np.empty(num_nodes, dtype=d.dtype)
     t = d.dtype.type
-    kern.density_rows(d, rows[2], t(re), t(_R_MIN), out)
+    _operator_kernels().density_rows(d, rows[2], t(re), t(_R_MIN), out)
     return torch.from_numpy(out)
 
 
-def _compiled_laplacian(
-    edge_index: Tensor, dist: Tensor, values: Tensor, re: float, scale: float, num_nodes: int
-) -> Tensor | None:
-    """:func:`laplacian` in one compiled pass per target row, or None where it does not apply.
+def _laplacian_compiled(
+    edge_index: Tensor,
+    dist: Tensor,
+    values: Tensor,
+    re: float,
+    n0_lap: float | Tensor,
+    lam: float | Tensor,
+    dim: int,
+    num_nodes: int,
+) -> Tensor:
+    """:func:`laplacian` in one compiled pass per target row.
 
-    Applies on the CPU without autograd, for edges sorted by target (the neighbour list's graphs) and
-    ``num_nodes`` no larger than the number of rows of ``values``. The same numbers as the torch
-    operations (weights, differences, products and the per-row sum in edge order), without the (E, C)
-    gathers and the scatter (several times faster: see ``benchmarks/results/operators.md``).
+    Takes edges sorted by target (the neighbour list's graphs), (N,) or (N, C) ``values`` in the dtype of
+    ``dist`` with ``num_nodes`` no larger than N, and Python ``n0_lap`` and ``lam``; the torch body takes
+    the rest. The same numbers as the torch operations (weights, differences, products and the per-row
+    sum in edge order), without the (E, C) gathers and the scatter (several times faster: see
+    ``benchmarks/results/operators.md``).
     """
-    from lagfluid import pair_kernels
-
-    kern = _operator_kernels()
-    if kern is None or not pair_kernels.applies(values, dist) or values.dim() not in (1, 2):
-        return None
-    if num_nodes > values.shape[0] or values.dtype != dist.dtype:
-        return None
-    rows = _sorted_rows(edge_index, values.shape[0], num_nodes)
+    scale = 2.0 * dim / (lam * n0_lap)
+    takes = not isinstance(scale, Tensor) and values.dim() in (1, 2) and values.dtype == dist.dtype
+    rows = (
+        sorted_rows(edge_index, values.shape[0], num_nodes)
+        if takes and num_nodes <= values.shape[0]
+        else None
+    )
     if rows is None:
-        return None
+        return _laplacian_torch(edge_index, dist, values, re, n0_lap, lam, dim, num_nodes)
     _, src, row_ptr = rows
     vals = values.detach().contiguous().numpy()
     vals2 = vals.reshape(vals.shape[0], -1)
     out = np.empty((num_nodes, vals2.shape[1]), dtype=vals.dtype)
     d = dist.detach().contiguous().numpy()
     t = d.dtype.type  # torch rounds Python scalars to the tensor's dtype
-    kern.laplacian_rows(src, d, vals2, row_ptr, t(re), t(_R_MIN), t(scale), out)
+    _operator_kernels().laplacian_rows(src, d, vals2, row_ptr, t(re), t(_R_MIN), t(float(scale)), out)
     return torch.from_numpy(out.reshape((num_nodes, *values.shape[1:])))
+
+
+_NUMBA = "lagfluid.physics._operators_numba"
+pair_kernels.register("mps_kernel", compiled=_kernel_compiled, torch=_kernel_torch, module=_NUMBA)
+pair_kernels.register(
+    "number_density", compiled=_number_density_compiled, torch=_number_density_torch, module=_NUMBA
+)
+pair_kernels.register(
+    "min_pressure_gradient", compiled=_min_gradient_compiled, torch=_min_gradient_torch, module=_NUMBA
+)
+pair_kernels.register("laplacian", compiled=_laplacian_compiled, torch=_laplacian_torch, module=_NUMBA)

@@ -12,7 +12,7 @@ from __future__ import annotations
 from torch import Tensor
 
 from lagfluid.errors import MetricInputError
-from lagfluid.neighbor_list import VerletNeighborList
+from lagfluid.neighbors.verlet import VerletNeighborList
 from lagfluid.physics.mps import exact_cutoff, pressure_system
 from lagfluid.physics.ppe import PPESystem, ppe_residual
 from lagfluid.physics.settings import MPSConstants, SolverSettings, scene_constants

@@ -32,7 +32,7 @@ import torch
 from torch import Tensor
 
 from lagfluid import integrate
-from lagfluid.neighbor_list import Graph, VerletNeighborList
+from lagfluid.neighbors.verlet import Graph, VerletNeighborList
 from lagfluid.physics import operators as ops
 from lagfluid.physics.settings import MPSConstants, SolverSettings, scene_constants
 from lagfluid.physics.step_context import GraphAnchor, SplitStepFields, StepContext, neighbor_list, read_info

@@ -15,7 +15,7 @@ from typing import Any
 import torch
 
 from lagfluid.errors import ConfigError
-from lagfluid.neighbor_list import VerletNeighborList
+from lagfluid.neighbors.verlet import VerletNeighborList
 from lagfluid.physics import operators as ops
 from lagfluid.state import ParticleState
 

@@ -14,10 +14,9 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
-from lagfluid import pair_kernels
 from lagfluid.errors import ConfigError
-from lagfluid.neighbor_list import Graph, VerletNeighborList
-from lagfluid.neighbors import edge_vectors
+from lagfluid.neighbors.pair_kernels import backend_for
+from lagfluid.neighbors.verlet import Graph, VerletNeighborList
 from lagfluid.physics.settings import MPSConstants, SolverSettings
 from lagfluid.physics.timing import StageTimer
 from lagfluid.state import ParticleState, SceneParams
@@ -156,7 +155,8 @@ class StepContext:
         """Like :meth:`record`, but later records of these fields in this step leave them as they are.
 
         For a stage that moves the particles by one rule and labels the step by another: the step then
-        records the stage's output under the same name (on-policy datasets, :mod:`lagfluid.generate.policy`).
+        records the stage's output under the same name (on-policy datasets,
+        :mod:`lagfluid.tasks.generate.policy`).
         """
         self.record(**arrays)
         self._labelled.update(arrays)
@@ -218,7 +218,7 @@ class StepContext:
         ``radius + 2 moved`` then (boundaries are static), so it is in the anchor: one pass over those pairs
         replaces a pass over the Verlet candidates. Fluid-target requests always can. All-target ones need
         an all-target anchor, and the walls that are targets now (those within ``wall_hops`` hops of the
-        fluid *now*, see :mod:`lagfluid.neighbor_list`) to be among its targets, or to have no edge within
+        fluid *now*, see :mod:`lagfluid.neighbors.verlet`) to be among its targets, or to have no edge within
         ``radius``; walls that stopped being targets are dropped.
         """
         full = anchor.graph
@@ -241,10 +241,5 @@ class StepContext:
                 mask = active
                 mask[:nf] = True
             near = full.within(radius + 2.0 * moved)
-        if pair_kernels.applies(pos):
-            return Graph(*pair_kernels.pairs_within(pos, [near.edge_index], radius, [mask]), radius)
-        rel, dist = edge_vectors(pos, near.edge_index)
-        keep = dist < radius
-        if mask is not None:
-            keep &= mask.index_select(0, near.edge_index[1])
-        return Graph(near.edge_index, rel, dist, radius).select(keep)
+        pairs_within = backend_for("pairs_within", pos)
+        return Graph(*pairs_within(pos, [near.edge_index], radius, [mask]), radius)

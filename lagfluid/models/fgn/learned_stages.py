@@ -13,10 +13,10 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from lagfluid import pair_kernels
 from lagfluid.device_constants import device_constant
 from lagfluid.models.fgn.inputs import advection_inputs, collision_inputs, pressure_inputs
 from lagfluid.models.fgn.networks import AdvectionNet, CollisionNet, PressureNet
+from lagfluid.neighbors import pair_kernels
 from lagfluid.physics import operators as ops
 from lagfluid.physics.settings import SolverSettings
 from lagfluid.physics.step_context import StepContext
@@ -58,12 +58,7 @@ def induced_subgraph(edge_index: Tensor, keep: Tensor) -> tuple[Tensor, Tensor, 
     nodes = torch.nonzero(keep).flatten()
     local = torch.full((keep.shape[0],), -1, dtype=torch.long, device=keep.device)
     local[nodes] = torch.arange(nodes.numel(), device=keep.device)
-    if pair_kernels.applies(edge_index):  # one compiled pass instead of ~6 over the edges
-        return nodes, *pair_kernels.induced_edges(edge_index, keep, local)
-    positions = torch.nonzero(keep.index_select(0, edge_index[0]) & keep.index_select(0, edge_index[1]))
-    positions = positions.flatten()
-    sub = local.index_select(0, edge_index.index_select(1, positions).flatten()).view(2, -1)
-    return nodes, sub, positions
+    return nodes, *pair_kernels.backend_for("induced_edges", edge_index)(edge_index, keep, local)
 
 
 class LearnedAdvection:

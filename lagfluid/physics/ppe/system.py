@@ -57,6 +57,9 @@ import torch
 from scipy.sparse.csgraph import connected_components
 from torch import Tensor
 
+from lagfluid.neighbors import pair_kernels
+from lagfluid.neighbors.pair_kernels import backend_for
+
 logger = logging.getLogger(__name__)
 
 
@@ -182,16 +185,28 @@ def assemble_ppe(
         _check_assembly_inputs(
             edge_index, coef, solve_mask, dirichlet_mask, density, isolated_diagonal_factor
         )
+    device = coef.device
+    solve_mask, dirichlet_mask = solve_mask.to(device), dirichlet_mask.to(device)
+    edge_index = edge_index.to(device)
+    assemble = backend_for("ppe_assembly", coef)
+    return assemble(
+        edge_index, coef, solve_mask, dirichlet_mask, density, isolated_diagonal_factor, components, check
+    )
+
+
+def _assemble_torch(
+    edge_index: Tensor,
+    coef: Tensor,
+    solve_mask: Tensor,
+    dirichlet_mask: Tensor,
+    density: float,
+    isolated_diagonal_factor: float,
+    components: str,
+    check: bool,
+) -> PPESystem:
+    """:func:`assemble_ppe` in torch operations (any device, differentiable), the arguments on one device."""
     device, dtype = coef.device, coef.dtype
     n = int(solve_mask.numel())
-    solve_mask = solve_mask.to(device)
-    dirichlet_mask = dirichlet_mask.to(device)
-    edge_index = edge_index.to(device)
-    if not check and components == "auto" and _compiled_assembly_applies(coef):
-        return _assemble_compiled(
-            edge_index, coef, solve_mask, dirichlet_mask, density, isolated_diagonal_factor
-        )
-
     index = torch.nonzero(solve_mask).flatten()
     k = int(index.numel())
     pos_of = torch.full((n,), -1, dtype=torch.long, device=device)
@@ -272,17 +287,11 @@ def _final_diagonal(diag: Tensor, isolated: Tensor, n_iso: int, density: float, 
     return diag
 
 
-def _compiled_assembly_applies(coef: Tensor) -> bool:
-    """The compiled CPU assembly serves CPU coefficients that need no gradient, when Numba is present."""
-    from lagfluid import pair_kernels
-
-    return pair_kernels.applies(coef) and _ppe_kernels() is not None
+_NUMBA = "lagfluid.physics.ppe._numba"
 
 
 def _ppe_kernels() -> ModuleType | None:
-    from lagfluid import pair_kernels
-
-    return pair_kernels.load("lagfluid.physics.ppe._numba")
+    return pair_kernels.load(_NUMBA)
 
 
 def _assemble_compiled(
@@ -292,15 +301,20 @@ def _assemble_compiled(
     dirichlet_mask: Tensor,
     density: float,
     factor: float,
+    components: str,
+    check: bool,
 ) -> PPESystem:
     """:func:`assemble_ppe` for trusted CPU input (sorted by target, then source) in compiled passes.
 
     The same matrix as the torch assembly (``tests/test_ppe.py`` compares them) from one pass per solved
     row, instead of ~20 torch passes over the edge list plus SciPy's ``connected_components`` (several
-    times faster per step: see ``benchmarks/results/ppe.md``).
+    times faster per step: see ``benchmarks/results/ppe.md``). Input to check (``check=True``) and a
+    chosen ``components`` go to the torch body.
     """
-    from lagfluid import pair_kernels
-
+    if check or components != "auto":
+        return _assemble_torch(
+            edge_index, coef, solve_mask, dirichlet_mask, density, factor, components, check
+        )
     kern = _ppe_kernels()
     pair_kernels.set_threads()
     n = int(solve_mask.numel())
@@ -473,14 +487,8 @@ def _isolated_rows(
     if k == 0:
         return coupled.clone(), 0
     if components == "scipy" or (components == "auto" and coupled.device.type == "cpu"):
-        crow_np, col_np = crow.cpu().numpy(), col.cpu().numpy()
-        kern = _ppe_kernels() if components == "auto" else None
-        if kern is not None:
-            labels = kern.component_labels(crow_np, col_np)
-        else:
-            graph = sp.csr_matrix((np.ones(col_np.size, dtype=np.int8), col_np, crow_np), shape=(k, k))
-            # The pattern is symmetric, so strong components are the components (and need no transpose).
-            _, labels = connected_components(graph, directed=True, connection="strong")
+        label = backend_for("component_labels", crow, col, compiled=components == "auto")
+        labels = label(crow.cpu().numpy(), col.cpu().numpy(), k)
         has_dirichlet = np.bincount(labels, weights=coupled.cpu().numpy()) > 0
         iso_np = ~has_dirichlet[labels]
         n_iso = int(np.unique(labels[iso_np]).size)
@@ -501,6 +509,21 @@ def _isolated_rows(
     return iso, n_iso
 
 
+def _component_labels_compiled(crow: np.ndarray, col: np.ndarray, k: int) -> np.ndarray:
+    """(K,) the connected component of each row of a symmetric (K, K) CSR pattern, by a compiled search."""
+    return _ppe_kernels().component_labels(crow, col)
+
+
+def _component_labels_scipy(crow: np.ndarray, col: np.ndarray, k: int) -> np.ndarray:
+    """:func:`_component_labels_compiled` by SciPy's ``connected_components`` (the same components).
+
+    Its labels may be numbered otherwise; only which rows share a label is used.
+    """
+    graph = sp.csr_matrix((np.ones(col.size, dtype=np.int8), col, crow), shape=(k, k))
+    # The pattern is symmetric, so strong components are the components (and need no transpose).
+    return connected_components(graph, directed=True, connection="strong")[1]
+
+
 def _count_components_torch(crow: Tensor, col: Tensor, mask: Tensor) -> int:
     """Number of connected components among the ``mask`` rows (a closed set), by min-label propagation."""
     k = mask.numel()
@@ -514,3 +537,9 @@ def _count_components_torch(crow: Tensor, col: Tensor, mask: Tensor) -> int:
             break
         label = new
     return int(torch.unique(label[mask]).numel())
+
+
+pair_kernels.register("ppe_assembly", compiled=_assemble_compiled, torch=_assemble_torch, module=_NUMBA)
+pair_kernels.register(
+    "component_labels", compiled=_component_labels_compiled, torch=_component_labels_scipy, module=_NUMBA
+)

@@ -14,14 +14,14 @@ from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 import lagfluid
-from lagfluid.config import scene_params
 from lagfluid.data.store import TrajectoryFileError, open_lagfluid_file
 from lagfluid.errors import ConfigError, RolloutError
-from lagfluid.evaluate.options import EvaluateOptions
-from lagfluid.locks import lock_path, wait_for_lock
 from lagfluid.physics.settings import solver_identity
 from lagfluid.plugin_configs import CONF_DIR
-from lagfluid.simulate import simulate
+from lagfluid.tasks.config import scene_params
+from lagfluid.tasks.evaluate.options import EvaluateOptions
+from lagfluid.tasks.locks import lock_path, wait_for_lock
+from lagfluid.tasks.simulate import simulate
 
 log = logging.getLogger(__name__)
 

@@ -1,4 +1,4 @@
-"""Numba kernels behind :mod:`lagfluid.pair_kernels` (imported lazily: only CPU filtering needs Numba).
+"""Numba kernels behind :mod:`lagfluid.neighbors.pair_kernels` (imported lazily: only CPU filters need Numba).
 
 Compiled on first use and cached on disk (``cache=True``), so only a fresh install pays the compilation.
 """
@@ -12,7 +12,7 @@ _CHUNK = 1 << 15
 
 
 @njit(cache=True, inline="always")
-def _squared_distance(pos, s, d):  # (x*x + y*y) + z*z in pos.dtype, as lagfluid.neighbors._distance
+def _squared_distance(pos, s, d):  # (x*x + y*y) + z*z in pos.dtype, as lagfluid.neighbors.geometry.distance
     diff = pos[s, 0] - pos[d, 0]
     acc = diff * diff
     for k in range(1, pos.shape[1]):

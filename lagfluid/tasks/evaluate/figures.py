@@ -11,9 +11,9 @@ from typing import Any
 import numpy as np
 
 from lagfluid.errors import RolloutError
-from lagfluid.evaluate.compare import Trajectory, common_frames
-from lagfluid.evaluate.options import SLICE_AXES, EvaluateOptions
 from lagfluid.state import ParticleType
+from lagfluid.tasks.evaluate.compare import Trajectory, common_frames
+from lagfluid.tasks.evaluate.options import SLICE_AXES, EvaluateOptions
 from lagfluid.viz import FIELDS, field_values
 
 

@@ -9,7 +9,7 @@
 
 Outputs are never lost: everything that can be checked before the first step is (dtype, device, scene,
 model and weights) before any file in ``DIR`` is touched, and the new files replace the old ones together
-when the run ends (:mod:`lagfluid.outputs`). A run the guard stopped is a result too (its files say
+when the run ends (:mod:`lagfluid.tasks.outputs`). A run the guard stopped is a result too (its files say
 ``complete: false`` and why); the last complete run's files it replaces are kept in ``DIR/previous/``.
 """
 
@@ -28,7 +28,14 @@ import torch
 from omegaconf import DictConfig
 
 import lagfluid
-from lagfluid.config import (
+from lagfluid.data.store import TrajectoryWriter, open_lagfluid_file, stored_dtype
+from lagfluid.errors import RolloutError
+from lagfluid.metrics import field_metrics, summarize
+from lagfluid.models.simulator import Simulator
+from lagfluid.physics.settings import SolverSettings, lattice_constants
+from lagfluid.rollout import Guard, rollout
+from lagfluid.state import ParticleState, ParticleType
+from lagfluid.tasks.config import (
     apply_threads,
     at_simulator_time_step,
     build_initial_state,
@@ -38,16 +45,9 @@ from lagfluid.config import (
     run_attributes,
     run_guard,
 )
-from lagfluid.data.store import TrajectoryWriter, open_lagfluid_file, stored_dtype
-from lagfluid.errors import RolloutError
-from lagfluid.locks import hold_outputs
-from lagfluid.metrics import field_metrics, summarize
-from lagfluid.models.simulator import Simulator
-from lagfluid.outputs import begin, part_path, publish, write_json
-from lagfluid.physics.settings import SolverSettings, lattice_constants
-from lagfluid.rollout import Guard, rollout
-from lagfluid.simulate_resume import RolloutCheckpoint, run_settings
-from lagfluid.state import ParticleState, ParticleType
+from lagfluid.tasks.locks import hold_outputs
+from lagfluid.tasks.outputs import begin, part_path, publish, write_json
+from lagfluid.tasks.simulate_resume import RolloutCheckpoint, run_settings
 from lagfluid.viz import colour_field, field_values, stopped_title
 
 log = logging.getLogger(__name__)
@@ -124,7 +124,7 @@ class _FrameMetrics:
         self.snapshots["last"] = snap
 
     def state_dict(self) -> dict[str, Any]:
-        """What a resumed run needs to go on (:mod:`lagfluid.simulate_resume`); arrays as tensors."""
+        """What a resumed run needs to go on (:mod:`lagfluid.tasks.simulate_resume`); arrays as tensors."""
         return {
             "density_errors": list(self.density_errors),
             "divergences": list(self.divergences),
@@ -205,7 +205,7 @@ def _set_up(cfg: DictConfig) -> tuple[ParticleState, Simulator, SolverSettings, 
             f"need steps >= 0 and write_every >= 1, got steps={cfg.steps}, write_every={cfg.write_every}"
         )
     if cfg.get("export") is not None:
-        from lagfluid.export import check_format
+        from lagfluid.tasks.export import check_format
 
         check_format(cfg.export)
     state = build_initial_state(cfg)
@@ -231,7 +231,7 @@ def _simulate_in(run: SimulationRun) -> dict[str, Any]:
         metrics["density_error"]["mean"],
     )
     if cfg.get("export"):
-        from lagfluid.export import export_rollout
+        from lagfluid.tasks.export import export_rollout
 
         log.info("exported %s", export_rollout(out_dir / "rollout.h5", str(cfg.export), cfg))
     return metrics
@@ -296,7 +296,7 @@ class SimulationRun:
 
         Restores the simulator's history (and a model's memory between steps), the checkpoint's window of
         states, the timing record, the wall time so far and the frame metrics, and reopens the trajectory
-        after its stored frames (the constants stay the start's, see :mod:`lagfluid.simulate_resume`).
+        after its stored frames (the constants stay the start's, see :mod:`lagfluid.tasks.simulate_resume`).
 
         Raises:
             RolloutError: no checkpoint or partial trajectory, other settings, or a run past ``steps``.
@@ -380,7 +380,7 @@ class SimulationRun:
     def write_outputs(self, complete: bool, stop_reason: str, by_guard: bool) -> dict[str, Any]:
         """Close the trajectory, write ``metrics.json`` and ``preview.png``, publish the three; the metrics.
 
-        Whatever fails on the way, the folder holds one run's files (:func:`lagfluid.outputs.publish`).
+        Whatever fails on the way, the folder holds one run's files (:func:`lagfluid.tasks.outputs.publish`).
         """
         cfg, simulator, out_dir = self.cfg, self.simulator, self.out_dir
         try:

@@ -9,7 +9,6 @@ from typing import Any
 
 from omegaconf import DictConfig
 
-from lagfluid.config import apply_threads
 from lagfluid.data.layout import (
     METADATA_FILE,
     SPLITS,
@@ -17,10 +16,11 @@ from lagfluid.data.layout import (
     split_counts,
 )
 from lagfluid.errors import LagfluidError
-from lagfluid.generate.metadata import write_metadata
-from lagfluid.generate.scene import generate_scene, scene_done
-from lagfluid.generate.spec import DataSpec
-from lagfluid.locks import hold_outputs
+from lagfluid.tasks.config import apply_threads
+from lagfluid.tasks.generate.metadata import write_metadata
+from lagfluid.tasks.generate.scene import generate_scene, scene_done
+from lagfluid.tasks.generate.spec import DataSpec
+from lagfluid.tasks.locks import hold_outputs
 
 log = logging.getLogger(__name__)
 

@@ -27,17 +27,17 @@ the other scenes still run and the generation then fails naming it.
 
 The scene-file layout is :mod:`lagfluid.data.layout`'s; the statistics in ``metadata.json`` are
 :mod:`lagfluid.data.statistics`' and describe the data (a network's normalisation is fitted by its
-trainable and lives in its checkpoint). Modules: :mod:`~lagfluid.generate.spec` (the settings),
-:mod:`~lagfluid.generate.scene` (one scene file), :mod:`~lagfluid.generate.collision` (the collision-only
-systems), :mod:`~lagfluid.generate.metadata` and :mod:`~lagfluid.generate.task`.
+trainable and lives in its checkpoint). Modules: :mod:`~lagfluid.tasks.generate.spec` (the settings),
+:mod:`~lagfluid.tasks.generate.scene` (one scene file), :mod:`~lagfluid.tasks.generate.collision` (the
+collision-only systems), :mod:`~lagfluid.tasks.generate.metadata` and :mod:`~lagfluid.tasks.generate.task`.
 """
 
 from __future__ import annotations
 
-from lagfluid.generate.collision import collision_system
-from lagfluid.generate.metadata import write_metadata
-from lagfluid.generate.scene import generate_scene
-from lagfluid.generate.spec import DataSpec
-from lagfluid.generate.task import generate
+from lagfluid.tasks.generate.collision import collision_system
+from lagfluid.tasks.generate.metadata import write_metadata
+from lagfluid.tasks.generate.scene import generate_scene
+from lagfluid.tasks.generate.spec import DataSpec
+from lagfluid.tasks.generate.task import generate
 
 __all__ = ["DataSpec", "collision_system", "generate", "generate_scene", "write_metadata"]

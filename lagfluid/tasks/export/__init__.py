@@ -3,14 +3,15 @@
 ``python -m lagfluid.run task=export run=DIR [format=vtu|gif|mp4]`` reads ``DIR/rollout.h5`` (or the rollout
 file ``run`` names) and writes, beside it,
 
-* ``format=vtu`` (:mod:`lagfluid.export.vtk`): ``DIR/paraview/rollout.pvd``, one ``frame_NNNNN.vtu`` per
+* ``format=vtu`` (:mod:`lagfluid.tasks.export.vtk`): ``DIR/paraview/rollout.pvd``, one ``frame_NNNNN.vtu`` per
   stored frame (fluid points with velocity, speed, pressure, number density n/n0 and particle type) and
   ``boundary.vtu`` (the static wall and dummy particles, written once): open the ``.pvd`` in ParaView;
-* ``format=gif`` / ``mp4`` (:mod:`lagfluid.export.animation`): ``DIR/rollout.gif`` (``.mp4`` needs ffmpeg),
-  the fluid coloured by ``animation.color`` (pressure or speed) over the tank's walls.
+* ``format=gif`` / ``mp4`` (:mod:`lagfluid.tasks.export.animation`): ``DIR/rollout.gif`` (``.mp4`` needs
+  ffmpeg), the fluid coloured by ``animation.color`` (pressure or speed) over the tank's walls.
 
 ``task=simulate export=vtu`` (or gif, mp4) exports the run it has just written; ``task=evaluate`` writes
-``side_by_side.gif``, the model beside the MPS reference (:func:`lagfluid.export.animation.side_by_side`).
+``side_by_side.gif``, the model beside the MPS reference
+(:func:`lagfluid.tasks.export.animation.side_by_side`).
 """
 
 from __future__ import annotations
@@ -64,10 +65,10 @@ def export_rollout(path: Path, fmt: str, cfg: DictConfig) -> Path:
     """
     check_format(fmt)
     if fmt == "vtu":
-        from lagfluid.export.vtk import write_paraview
+        from lagfluid.tasks.export.vtk import write_paraview
 
         return write_paraview(path, path.parent / "paraview")
-    from lagfluid.export.animation import animate
+    from lagfluid.tasks.export.animation import animate
 
     options = cfg.animation
     return animate(
@@ -81,7 +82,7 @@ def export_task(cfg: DictConfig) -> Path:
 
     if cfg.get("run") is None:
         raise ConfigError("task=export needs run=DIR (a run folder with rollout.h5) or run=FILE.h5")
-    from lagfluid.locks import hold_outputs
+    from lagfluid.tasks.locks import hold_outputs
 
     path, fmt = rollout_path(str(cfg.run)), check_format(cfg.format)
     with hold_outputs(path.parent, "export", what="run"):  # it writes beside the rollout, as its run did

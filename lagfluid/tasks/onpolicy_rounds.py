@@ -7,7 +7,7 @@ A network trained on the solver's trajectories meets, in its own rollouts, state
 1. ``<out_dir>/onpolicy/round<k>/data``: the training dataset's own scenes (same scene, seeds, steps,
    materials) rolled out by the run's model with its networks of round k-1 (round 0: the one-step trained
    ones in ``out_dir``), each sample labelled by the exact MPS stage at the model's own state
-   (``data.policy=model``, :mod:`lagfluid.generate.policy`);
+   (``data.policy=model``, :mod:`lagfluid.tasks.generate.policy`);
 2. each of ``train.onpolicy.trainables`` (the pressure net by default) fine-tuned on it (with
    ``train.onpolicy.aggregate``: on rounds 1..k's data together) from its round k-1 weights:
    ``train.onpolicy.iterations`` at ``train.onpolicy.lr_start`` decaying to ``train.lr_end``, PPE term
@@ -103,7 +103,7 @@ class OnPolicy:
 def round_dir(out_dir: Path, k: int, folder: str = "onpolicy") -> Path:
     """Round ``k``'s folder (its data and networks); round 0 is ``out_dir`` itself.
 
-    ``folder``: the rounds' folder in ``out_dir`` (``dagger`` for :mod:`lagfluid.dagger_rounds`).
+    ``folder``: the rounds' folder in ``out_dir`` (``dagger`` for :mod:`lagfluid.tasks.dagger_rounds`).
     """
     return out_dir if k == 0 else out_dir / folder / f"round{k}"
 
@@ -136,11 +136,11 @@ def generate_scenes(
     Args:
         gen: the generation config (``data.scene_index`` set per job).
         jobs: processes at once.
-        make: the generation task (default :func:`lagfluid.generate.generate`; a DAgger dataset's:
-            :func:`lagfluid.generate.expert.generate_expert`).
+        make: the generation task (default :func:`lagfluid.tasks.generate.generate`; a DAgger dataset's:
+            :func:`lagfluid.tasks.generate.expert.generate_expert`).
         scenes: the scene indices ``make`` generates (default: all ``gen.num_scenes``).
     """
-    from lagfluid.generate import generate
+    from lagfluid.tasks.generate import generate
 
     make = make or generate
     scenes = list(scenes) or list(range(int(gen.num_scenes)))
@@ -168,8 +168,8 @@ def check_same_scenes(cfg: DictConfig, option: str = "train.onpolicy.rounds") ->
         ConfigError: a scene of ``data.out_dir`` was made with other settings than this command's
             (another ``scene=``, seed, steps, dt or solver), named with the dataset's scene builder.
     """
-    from lagfluid.generate.scene import scene_done
-    from lagfluid.generate.spec import DataSpec
+    from lagfluid.tasks.generate.scene import scene_done
+    from lagfluid.tasks.generate.spec import DataSpec
 
     data_dir = Path(str(cfg.data.out_dir))
     spec = DataSpec.from_config(dataset_generate_config(cfg, None, data_dir))
@@ -199,7 +199,7 @@ def run_rounds(
         cfg: the ``task=train`` config.
         settings: its ``train.onpolicy`` (:meth:`OnPolicy.from_config`, rounds >= 1).
         out_dir: the run's folder, holding each of the model's one-step trained ``<name>.pt``.
-        train_one: :func:`lagfluid.train.train_one` (passed in: this module is one of its callers').
+        train_one: :func:`lagfluid.tasks.train.train_one` (passed in: this module is one of its callers').
 
     Returns:
         the last round's folder (a complete ``model.weights``).

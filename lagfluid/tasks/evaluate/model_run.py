@@ -16,19 +16,19 @@ from typing import Any
 
 from omegaconf import DictConfig
 
-from lagfluid.config import run_attributes, run_guard
 from lagfluid.data.store import TrajectoryWriter, stored_dtype
 from lagfluid.errors import RolloutError
 from lagfluid.metrics import normalized_mae
 from lagfluid.models.simulator import Simulator
-from lagfluid.neighbor_list import VerletNeighborList
+from lagfluid.neighbors.verlet import VerletNeighborList
 from lagfluid.physics.mps import ExactAdvection
 from lagfluid.physics.reference import exact_context, mps_constants, mps_neighbor_list, ppe_relative_residual
 from lagfluid.physics.settings import MPSConstants, SolverSettings
 from lagfluid.physics.step_context import SplitStepFields
 from lagfluid.rollout import rollout
-from lagfluid.simulate import timing_summary
 from lagfluid.state import ParticleState
+from lagfluid.tasks.config import run_attributes, run_guard
+from lagfluid.tasks.simulate import timing_summary
 
 log = logging.getLogger(__name__)
 
@@ -78,7 +78,7 @@ def run_model(
     """Roll the model out into ``out`` (rollout.h5) and collect its one-step errors per stored frame.
 
     With ``reset`` the rollout first calls ``simulator.reset(state, history)`` (``history``:
-    :func:`lagfluid.config.initial_history`); pass False when the caller has reset it already.
+    :func:`lagfluid.tasks.config.initial_history`); pass False when the caller has reset it already.
 
     Returns:
         ``complete``, ``stop_reason``, ``steps`` done, ``timing`` (median time per step and per stage as

@@ -1,18 +1,27 @@
-"""Compiled CPU kernels (Numba) that filter candidate pairs by distance in one pass.
+"""Kernels over particle pairs with a compiled (Numba, CPU) and a torch body, and where a backend is chosen.
 
-Why our own kernels: the Verlet list (:mod:`lagfluid.neighbor_list`) filters every candidate pair by its
+Backends are chosen in one place. Every computation with a compiled and a torch body, here and in the
+operators, the PPE assembly, FGN's and CConv's stages, is a :class:`Kernel` registered by name
+(:func:`register`); an algorithm asks :func:`backend_for` for the body that serves its tensors and calls it,
+without a branch of its own. The compiled body serves CPU tensors in float32 or float64 that need no
+gradient, when Numba is installed (:func:`applies`); the torch body every other case (CUDA, autograd, no
+Numba). A compiled body may hand input it does not take (edges not sorted by target, a handful of pairs)
+to its torch body: both give the same numbers.
+
+The pair filters here (:func:`pairs_within`, :func:`select_below`, :func:`induced_edges`, the cell list of
+:func:`cell_search`): the Verlet list (:mod:`lagfluid.neighbors.verlet`) filters every candidate pair by its
 current distance twice per MPS step, and as torch operations that pass materialises ``pos[src]``,
 ``pos[dst]``, ``rel``, ``rel * rel``, the mask and the ``nonzero`` index (each 1-10 M rows) before gathering
-the kept rows again. These kernels read each candidate once from cache-resident positions and write only
-the kept pairs (measurements: ``benchmarks/results/neighbors_notes.md``). Neither PyG nor SciPy filters an
-existing pair list.
+the kept rows again. The compiled bodies read each candidate once from cache-resident positions and write
+only the kept pairs (measurements: ``benchmarks/results/neighbors_notes.md``). Neither PyG nor SciPy filters
+an existing pair list.
 
-The results are *bit-identical* to the torch path (:func:`lagfluid.neighbors.edge_vectors` followed by
-``dist < radius``): the same float operations in the same order (``sqrt((x*x + y*y) + z*z)`` in the
-positions' dtype, no fused multiply-add, no fast-math) and the radius rounded to that dtype as torch
+The results are *bit-identical* to the torch bodies (:func:`lagfluid.neighbors.geometry.edge_vectors`
+followed by ``dist < radius``): the same float operations in the same order (``sqrt((x*x + y*y) + z*z)``
+in the positions' dtype, no fused multiply-add, no fast-math) and the radius rounded to that dtype as torch
 rounds a Python scalar. The kept pairs keep their input order, so target-sorted input stays sorted.
 
-The torch path remains for CUDA tensors, for positions that require grad, and where Numba is not
+The torch bodies remain for CUDA tensors, for positions that require grad, and where Numba is not
 installed (:func:`available`).
 """
 
@@ -21,12 +30,16 @@ from __future__ import annotations
 import functools
 import importlib
 import logging
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from types import ModuleType
+from typing import Any
 
 import numpy as np
 import torch
 from torch import Tensor
+
+from lagfluid.neighbors.geometry import edge_vectors, take_edges
 
 log = logging.getLogger(__name__)
 
@@ -88,7 +101,7 @@ def uncached_kernels(kernels: ModuleType) -> str | None:
 
 def _compiled() -> ModuleType | None:
     """The pair-filter kernels, or None without Numba."""
-    return load("lagfluid._pair_kernels_numba")
+    return load("lagfluid.neighbors._numba")
 
 
 def available() -> bool:
@@ -96,12 +109,73 @@ def available() -> bool:
     return _compiled() is not None
 
 
+_COMPILED_FLOATS = (torch.float32, torch.float64)  # the floating dtypes the Numba kernels are written for
+
+
 def applies(*tensors: Tensor) -> bool:
-    """True when the kernels should serve these tensors: Numba present, all on the CPU, none needing grad."""
+    """True when compiled kernels should serve these tensors (the one test :func:`backend_for` makes).
+
+    Numba present; every tensor on the CPU, none needing grad, the floating ones float32 or float64
+    (integer and bool tensors: any dtype).
+    """
     return (
-        all(t.device.type == "cpu" and not (t.requires_grad and torch.is_grad_enabled()) for t in tensors)
+        all(
+            t.device.type == "cpu"
+            and not (t.requires_grad and torch.is_grad_enabled())
+            and (t.dtype in _COMPILED_FLOATS or not t.dtype.is_floating_point)
+            for t in tensors
+        )
         and available()
     )
+
+
+@dataclass(frozen=True)
+class Kernel:
+    """One computation with two bodies that give the same numbers, bit for bit.
+
+    Attributes:
+        name: its key in :data:`KERNELS`.
+        compiled: the Numba body (CPU, no autograd); it may hand input it does not take to ``torch``.
+        torch: the torch body (any device, autograd, no Numba needed).
+        module: the Numba module the compiled body loads (None: this module's pair kernels), which must
+            load for the compiled body to serve.
+    """
+
+    name: str
+    compiled: Callable[..., Any]
+    torch: Callable[..., Any]
+    module: str | None = None
+
+
+KERNELS: dict[str, Kernel] = {}
+"""Every registered kernel by name (:func:`register`)."""
+
+
+def register(
+    name: str, *, compiled: Callable[..., Any], torch: Callable[..., Any], module: str | None = None
+) -> Kernel:
+    """Register the two bodies of kernel ``name`` (see :class:`Kernel`); :func:`backend_for` picks one.
+
+    Raises:
+        ValueError: ``name`` is already the kernel of another module.
+    """
+    known = KERNELS.get(name)
+    if known is not None and known.torch.__module__ != torch.__module__:
+        raise ValueError(f"kernel {name!r} is already registered by {known.torch.__module__}")
+    KERNELS[name] = kernel = Kernel(name, compiled, torch, module)
+    return kernel
+
+
+def backend_for(name: str, *tensors: Tensor, compiled: bool = True) -> Callable[..., Any]:
+    """The body of kernel ``name`` that serves ``tensors``: the one place where a backend is chosen.
+
+    The compiled body where :func:`applies` to ``tensors`` and its Numba module loads, else the torch body;
+    always the torch body with ``compiled=False`` (a caller's own backend option, e.g. a search backend).
+    """
+    kernel = KERNELS[name]
+    if compiled and applies(*tensors) and (kernel.module is None or load(kernel.module) is not None):
+        return kernel.compiled
+    return kernel.torch
 
 
 def set_threads() -> None:
@@ -226,8 +300,49 @@ def select_below(
     return torch.from_numpy(out), torch.from_numpy(out_rel), torch.from_numpy(out_dist)
 
 
+def _select_below_torch(
+    edge_index: Tensor, rel: Tensor, dist: Tensor, radius: float
+) -> tuple[Tensor, Tensor, Tensor]:
+    """:func:`select_below` in torch operations: the edges with ``dist < radius``.
+
+    nonzero + index_select rather than boolean indexing: faster on the CPU for (E, 3) arrays.
+    """
+    index = torch.nonzero(dist < radius).flatten()
+    return take_edges(edge_index, index), rel.index_select(0, index), dist.index_select(0, index)
+
+
+def _pairs_within_torch(
+    pos: Tensor,
+    edge_lists: Sequence[Tensor],
+    radius: float,
+    target_masks: Sequence[Tensor | None] | None = None,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """:func:`pairs_within` in torch operations (any device, differentiable).
+
+    Per candidate list ``(2, E_k)``: its geometry at ``pos`` (N, D), the pairs with ``dist < radius`` (and
+    ``target_mask[i]`` where a mask is given), in input order; the lists' results concatenated.
+    """
+    masks = list(target_masks) if target_masks is not None else [None] * len(edge_lists)
+    parts = []
+    for edges, target_mask in zip(edge_lists, masks, strict=True):
+        rel, dist = edge_vectors(pos, edges)
+        keep = dist < radius
+        if target_mask is not None:
+            keep &= target_mask.index_select(0, edges[1])
+        index = torch.nonzero(keep).flatten()
+        parts.append((take_edges(edges, index), rel.index_select(0, index), dist.index_select(0, index)))
+    if len(parts) == 1:
+        return parts[0]
+    edges, rel, dist = zip(*parts, strict=True)
+    return torch.cat(edges, dim=1), torch.cat(rel), torch.cat(dist)
+
+
+register("select_below", compiled=select_below, torch=_select_below_torch)
+register("pairs_within", compiled=pairs_within, torch=_pairs_within_torch)
+
+
 def induced_edges(edge_index: Tensor, keep: Tensor, local: Tensor) -> tuple[Tensor, Tensor]:
-    """The edges between kept nodes, renumbered, and where they were (order kept).
+    """The edges between kept nodes, renumbered, and where they were (order kept): one compiled pass.
 
     Args:
         edge_index: (2, E) int64 on the CPU.
@@ -247,6 +362,17 @@ def induced_edges(edge_index: Tensor, keep: Tensor, local: Tensor) -> tuple[Tens
     return torch.from_numpy(out), torch.from_numpy(positions)
 
 
+def _induced_edges_torch(edge_index: Tensor, keep: Tensor, local: Tensor) -> tuple[Tensor, Tensor]:
+    """:func:`induced_edges` in torch operations (~6 passes over the edges), on any device."""
+    positions = torch.nonzero(keep.index_select(0, edge_index[0]) & keep.index_select(0, edge_index[1]))
+    positions = positions.flatten()
+    sub = local.index_select(0, edge_index.index_select(1, positions).flatten()).view(2, -1)
+    return sub, positions
+
+
+register("induced_edges", compiled=induced_edges, torch=_induced_edges_torch)
+
+
 # The cell list keeps a dense table of cells: above this many cells per particle (a far-flung particle
 # stretching the box) the caller falls back to the k-d tree.
 _MAX_CELLS_PER_PARTICLE = 64
@@ -259,8 +385,8 @@ class CellList:
 
     Each query scans the 5^3 cells around a particle in parallel and cuts at the exact squared threshold
     of torch's ``sqrt`` (:func:`_squared_bound`), so its pairs are those of every other backend of
-    :func:`lagfluid.neighbors.radius_graph`. Build with :meth:`build` (None when the particles' box holds
-    too many cells for the dense cell table: far-flung particles; use another search then).
+    :func:`lagfluid.neighbors.search.radius_graph`. Build with :meth:`build` (None when the particles' box
+    holds too many cells for the dense cell table: far-flung particles; use another search then).
     """
 
     def __init__(self, pos: np.ndarray, cell: np.ndarray, order: np.ndarray, cell_start: np.ndarray,
@@ -339,7 +465,7 @@ class CellList:
 def cell_search(pos: Tensor, radius: float, batch: Tensor | None, receivers: Tensor) -> Tensor | None:
     """Every pair (i receiver, j any particle, i != j, same graph) with torch's ``|x_j - x_i| < radius``.
 
-    The ``numba`` backend of :func:`lagfluid.neighbors.radius_graph` (see :class:`CellList`).
+    The ``numba`` backend of :func:`lagfluid.neighbors.search.radius_graph` (see :class:`CellList`).
 
     Args:
         pos: (N, D) CPU positions, D in {2, 3}.

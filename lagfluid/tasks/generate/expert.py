@@ -1,7 +1,7 @@
 """DAgger datasets for end-to-end models: the model rolls the scenes out, MPS labels one model step.
 
 For each training scene of a dataset (same scene settings, seeds, materials and steps: a
-:class:`~lagfluid.generate.spec.DataSpec` of the dataset's own generation config), an end-to-end model
+:class:`~lagfluid.tasks.generate.spec.DataSpec` of the dataset's own generation config), an end-to-end model
 (``model=gns`` or ``cconv`` with ``model.weights``; any simulator that is not split-step, with
 ``model.exact_after``'s stages after each step if on) is rolled out from the scene's start as
 ``task=simulate`` would (GNS: its MPS warm start, then its own steps of ``frame_dt``). At every ``every``-th
@@ -35,15 +35,6 @@ import torch
 from omegaconf import DictConfig
 
 import lagfluid
-from lagfluid.config import (
-    apply_threads,
-    at_simulator_time_step,
-    build_simulator,
-    check_run_memory,
-    git_commit,
-    run_attributes,
-    run_guard,
-)
 from lagfluid.data.expert_windows import EXPERT, EXPERT_FORMAT_VERSION, LABELS, LATER
 from lagfluid.data.layout import (
     DATASET_FORMAT,
@@ -58,11 +49,7 @@ from lagfluid.data.layout import (
 )
 from lagfluid.data.store import TrajectoryWriter, stored_dtype
 from lagfluid.errors import ConfigError, RolloutError, SceneError
-from lagfluid.generate.metadata import write_json_atomic
-from lagfluid.generate.scene import scene_done
-from lagfluid.generate.spec import DataSpec
 from lagfluid.integrate import velocity_from_positions
-from lagfluid.locks import hold_outputs
 from lagfluid.models.exact_after import ExactAfter
 from lagfluid.models.mps_simulator import build_mps
 from lagfluid.models.simulator import Simulator
@@ -71,6 +58,19 @@ from lagfluid.physics.settings import SolverSettings
 from lagfluid.rollout import Guard, rollout
 from lagfluid.scenes import build_scene
 from lagfluid.state import ParticleState
+from lagfluid.tasks.config import (
+    apply_threads,
+    at_simulator_time_step,
+    build_simulator,
+    check_run_memory,
+    git_commit,
+    run_attributes,
+    run_guard,
+)
+from lagfluid.tasks.generate.metadata import write_json_atomic
+from lagfluid.tasks.generate.scene import scene_done
+from lagfluid.tasks.generate.spec import DataSpec
+from lagfluid.tasks.locks import hold_outputs
 
 log = logging.getLogger(__name__)
 

@@ -6,8 +6,8 @@ Searching at every position set would repeat the neighbour search three times pe
 keep *candidate* pairs within ``cutoff + skin`` and filter them by the true current distance; the list
 is rebuilt only when some fluid particle has moved more than ``skin / 2`` since the last build, which
 guarantees that every pair within ``cutoff`` is a candidate. The result is exact, not approximate. On
-the CPU the filter is one compiled pass per candidate list (:mod:`lagfluid.pair_kernels`, bit-identical
-to the torch operations used on CUDA and for positions that require grad).
+the CPU the filter is one compiled pass per candidate list (:mod:`lagfluid.neighbors.pair_kernels`,
+bit-identical to the torch operations used on CUDA and for positions that require grad).
 
 Receivers (graph targets) are the fluid particles and the wall particles within ``wall_hops`` hops of
 the fluid, a hop being the cutoff (3.1 l0, the Laplacian radius): walls with fluid within 3.1 l0, then
@@ -28,27 +28,13 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
-from lagfluid import pair_kernels
-from lagfluid.neighbors import edge_vectors, radius_graph
+from lagfluid.neighbors import pair_kernels
+from lagfluid.neighbors.geometry import edge_vectors, take_edges
+from lagfluid.neighbors.pair_kernels import backend_for
+from lagfluid.neighbors.search import radius_graph
 from lagfluid.state import ParticleType
 
 log = logging.getLogger(__name__)
-
-
-def take_edges(edge_index: Tensor, index: Tensor, out: Tensor | None = None) -> Tensor:
-    """``edge_index[:, index]``: the (2, K) columns ``index`` (K,) of a (2, E) edge index.
-
-    One 1-D gather per row, optionally into ``out`` (2, K) (a column slice of a larger edge index): on the
-    CPU ``index_select`` along dim 1 of a (2, E) tensor is slower (``benchmarks/results/neighbors_notes.md``).
-    """
-    if out is None:
-        out = edge_index.new_empty((2, index.numel()))
-    for row in range(2):
-        if out[row].is_contiguous():
-            torch.index_select(edge_index[row], 0, index, out=out[row])
-        else:
-            out[row].copy_(edge_index[row].index_select(0, index))
-    return out
 
 
 @dataclass
@@ -76,22 +62,15 @@ class Graph:
             raise ValueError(f"cannot restrict a graph of radius {self.radius} to a larger radius {radius}")
         if radius >= self.radius:  # every edge already qualifies: no pass over the edges
             return self
-        if pair_kernels.applies(self.rel, self.dist):
-            return Graph(*pair_kernels.select_below(self.edge_index, self.rel, self.dist, radius), radius)
-        return self._take(torch.nonzero(self.dist < radius).flatten(), radius)
+        select_below = backend_for("select_below", self.rel, self.dist)
+        return Graph(*select_below(self.edge_index, self.rel, self.dist, radius), radius)
 
     def select(self, keep: Tensor) -> Graph:
         """Sub-graph of the edges where the (E,) bool mask ``keep`` is True."""
-        return self._take(torch.nonzero(keep).flatten(), self.radius)
-
-    def _take(self, index: Tensor, radius: float) -> Graph:
         # nonzero + index_select rather than boolean indexing: faster on the CPU for (E, 3) arrays.
-        return Graph(
-            take_edges(self.edge_index, index),
-            self.rel.index_select(0, index),
-            self.dist.index_select(0, index),
-            radius,
-        )
+        index = torch.nonzero(keep).flatten()
+        rel, dist = self.rel.index_select(0, index), self.dist.index_select(0, index)
+        return Graph(take_edges(self.edge_index, index), rel, dist, self.radius)
 
     def into_first(self, n: int) -> Graph:
         """Sub-graph of the edges whose target is one of particles ``0 .. n-1`` (e.g. the fluid).
@@ -116,7 +95,7 @@ class VerletNeighborList:
     Args:
         cutoff: the largest radius any stage will ask for, metres.
         skin: extra margin, metres; larger = fewer rebuilds, more candidate pairs to filter.
-        backend: neighbour-search backend passed to :func:`lagfluid.neighbors.radius_graph`.
+        backend: neighbour-search backend passed to :func:`lagfluid.neighbors.search.radius_graph`.
     """
 
     def __init__(self, cutoff: float, skin: float, backend: str = "auto", wall_hops: int | None = 2) -> None:
@@ -183,22 +162,24 @@ class VerletNeighborList:
         n_fluid = self._fluid_count(ptype)
         if not self.needs_rebuild(pos, n_fluid):
             return False
-        r = self.list_radius
         fluid = ptype == ParticleType.FLUID
         walls = ptype == ParticleType.WALL
-        cells = None
-        if self.backend in ("auto", "numba") and pair_kernels.applies(pos):
-            cells = pair_kernels.CellList.build(pos, r)
-        if cells is not None:
-            self.candidates = self._search_with_cells(cells, fluid, walls)
-            self._fluid_prefix = int(torch.searchsorted(self.candidates[1], torch.tensor(n_fluid)))
-        else:
-            self._search(pos, r, fluid, walls)
+        # the compiled cell list serves the backends "auto" and "numba"; the others search by name
+        search = backend_for("verlet_search", pos, compiled=self.backend in ("auto", "numba"))
+        self.candidates, self._fluid_prefix = search(self, pos, fluid, walls, n_fluid)
         self._built_at = pos[:n_fluid].clone()
         self._static = _WallRows.build(pos, self.candidates[:, self._fluid_prefix :], n_fluid, self.cutoff)
         self.builds += 1
         log.debug("neighbour list rebuilt: %d candidate pairs", self.candidates.shape[1])
         return True
+
+    def _search_compiled(self, pos: Tensor, fluid: Tensor, walls: Tensor, n_fluid: int) -> tuple[Tensor, int]:
+        """:meth:`_search` from one compiled cell list (the torch body where the box is too wide for one)."""
+        cells = pair_kernels.CellList.build(pos, self.list_radius)
+        if cells is None:  # far-flung particles: too many cells for the dense cell table
+            return self._search(pos, fluid, walls, n_fluid)
+        candidates = self._search_with_cells(cells, fluid, walls)
+        return candidates, int(torch.searchsorted(candidates[1], torch.tensor(n_fluid)))
 
     def _search_with_cells(self, cells: pair_kernels.CellList, fluid: Tensor, walls: Tensor) -> Tensor:
         """The candidates (2, E) from one compiled cell list (what :meth:`_search` finds, in one pass).
@@ -226,8 +207,12 @@ class VerletNeighborList:
                 near_walls |= frontier
         return cells.pairs(torch.nonzero(fluid | near_walls).flatten())
 
-    def _search(self, pos: Tensor, r: float, fluid: Tensor, walls: Tensor) -> None:
-        """The candidates from :func:`radius_graph` searches (any backend, any device)."""
+    def _search(self, pos: Tensor, fluid: Tensor, walls: Tensor, n_fluid: int) -> tuple[Tensor, int]:
+        """The candidates (2, E) from :func:`radius_graph` searches (any backend, any device).
+
+        Returns the candidates and how many of them are pairs into the fluid (their first columns).
+        """
+        r = self.list_radius
         into_fluid = radius_graph(pos, r, receivers=fluid, backend=self.backend)
         # Walls within `wall_hops` hops of the fluid receive edges too (their number density and pressure
         # matter); the rest of the boundary is never a target. Walls are static, so the hops beyond the
@@ -245,13 +230,11 @@ class VerletNeighborList:
                 frontier = torch.zeros_like(fluid)
                 frontier[around[walls[around] & ~near_walls[around]]] = True
                 near_walls |= frontier
-        if bool(near_walls.any()):
-            into_walls = radius_graph(pos, r, receivers=near_walls, backend=self.backend)
-            # Fluid rows come first, so concatenating keeps the edges sorted by target.
-            self.candidates = torch.cat([into_fluid, into_walls], dim=1)
-        else:
-            self.candidates = into_fluid
-        self._fluid_prefix = into_fluid.shape[1]
+        if not bool(near_walls.any()):
+            return into_fluid, into_fluid.shape[1]
+        into_walls = radius_graph(pos, r, receivers=near_walls, backend=self.backend)
+        # Fluid rows come first, so concatenating keeps the edges sorted by target.
+        return torch.cat([into_fluid, into_walls], dim=1), into_fluid.shape[1]
 
     def graph(self, pos: Tensor, ptype: Tensor, radius: float, fluid_targets_only: bool = False) -> Graph:
         """Every pair within ``radius`` at positions ``pos`` (N, 3), from the candidate list.
@@ -272,17 +255,25 @@ class VerletNeighborList:
         if radius > self.cutoff * (1 + 1e-12):
             raise ValueError(f"radius {radius} exceeds the neighbour list cutoff {self.cutoff}")
         self.update(pos, ptype)
-        into_fluid = self.candidates[:, : self._fluid_prefix]
         walls = self._static
         with_walls = not fluid_targets_only and walls is not None and walls.num_candidates > 0
-        if pair_kernels.applies(pos):  # one compiled pass per candidate list (see lagfluid.pair_kernels)
-            if not with_walls:
-                return Graph(*pair_kernels.pairs_within(pos, [into_fluid], radius), radius)
-            active = self._active_walls(pos) if self.wall_hops is not None else None
-            edges, rel, dist = pair_kernels.pairs_within(
-                pos, [into_fluid, walls.candidates], radius, [None, active]
-            )
-            return Graph(edges, rel, dist, radius)
+        return backend_for("verlet_graph", pos)(self, pos, ptype, radius, with_walls)
+
+    def _graph_compiled(self, pos: Tensor, ptype: Tensor, radius: float, with_walls: bool) -> Graph:
+        """:meth:`graph` in one compiled pass per candidate list (:mod:`lagfluid.neighbors.pair_kernels`)."""
+        into_fluid = self.candidates[:, : self._fluid_prefix]
+        if not with_walls:
+            return Graph(*pair_kernels.pairs_within(pos, [into_fluid], radius), radius)
+        active = self._active_walls(pos) if self.wall_hops is not None else None
+        edges, rel, dist = pair_kernels.pairs_within(
+            pos, [into_fluid, self._static.candidates], radius, [None, active]
+        )
+        return Graph(edges, rel, dist, radius)
+
+    def _graph_torch(self, pos: Tensor, ptype: Tensor, radius: float, with_walls: bool) -> Graph:
+        """:meth:`graph` in torch operations; the boundary-source pairs keep their cached geometry."""
+        into_fluid = self.candidates[:, : self._fluid_prefix]
+        walls = self._static
         rel, dist = edge_vectors(pos, into_fluid)
         # nonzero + index_select rather than boolean indexing: faster on the CPU for (E, 3) arrays.
         keep = torch.nonzero(dist < radius).flatten()
@@ -332,9 +323,7 @@ class VerletNeighborList:
         walls = self._static
         if walls is None or walls.num_candidates == 0:
             return torch.zeros(pos.shape[0], dtype=torch.bool, device=pos.device)
-        if pair_kernels.applies(pos):
-            return self._active_walls(pos)
-        return self._hops_from(walls.dyn_dst, pos, walls.geometry(pos)[2] < self.cutoff)
+        return backend_for("verlet_active_walls", pos)(self, pos)
 
     def closest_static_pair(self) -> float:
         """The shortest pair between boundary particles into a wall target under the cutoff, m (inf if none).
@@ -350,6 +339,11 @@ class VerletNeighborList:
         """
         near, _, _ = pair_kernels.pairs_within(pos, [self._static.dyn_edges], self.cutoff)
         return self._hops_from(near[1], pos)
+
+    def _active_walls_torch(self, pos: Tensor) -> Tensor:
+        """:meth:`_active_walls` in torch operations, from the cached geometry of the wall rows."""
+        walls = self._static
+        return self._hops_from(walls.dyn_dst, pos, walls.geometry(pos)[2] < self.cutoff)
 
     def _hops_from(self, first: Tensor, pos: Tensor, where: Tensor | None = None) -> Tensor:
         """(N,) bool: the walls ``first`` (indices) and ``wall_hops - 1`` hops beyond them.
@@ -415,12 +409,7 @@ class _WallRows:
         dyn = torch.nonzero(from_fluid).flatten()
         dyn_edges = take_edges(candidates, dyn)
         static = take_edges(candidates, torch.nonzero(~from_fluid).flatten())  # boundary sources, in order
-        if pair_kernels.applies(pos):
-            hop_pairs, _, hop_dist = pair_kernels.pairs_within(pos, [static], cutoff)
-        else:
-            static_dist = edge_vectors(pos, static)[1]
-            hop = torch.nonzero(static_dist < cutoff).flatten()
-            hop_pairs, hop_dist = take_edges(static, hop), static_dist.index_select(0, hop)
+        hop_pairs, _, hop_dist = backend_for("pairs_within", pos)(pos, [static], cutoff)
         return cls(
             candidates,
             None,
@@ -447,3 +436,18 @@ class _WallRows:
         self.rel.index_copy_(0, self.dyn, rel)
         self.dist.index_copy_(0, self.dyn, dist)
         return self.rel, self.dist, dist
+
+
+pair_kernels.register(
+    "verlet_search",
+    compiled=VerletNeighborList._search_compiled,
+    torch=VerletNeighborList._search,
+)
+pair_kernels.register(
+    "verlet_graph", compiled=VerletNeighborList._graph_compiled, torch=VerletNeighborList._graph_torch
+)
+pair_kernels.register(
+    "verlet_active_walls",
+    compiled=VerletNeighborList._active_walls,
+    torch=VerletNeighborList._active_walls_torch,
+)

@@ -14,15 +14,15 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from lagfluid.config import run_device, scene_params
 from lagfluid.data.layout import (
     SAMPLES_FORMAT_VERSION,
     SPLITS,
 )
 from lagfluid.errors import LagfluidError
-from lagfluid.generate.policy import policy_identity
 from lagfluid.physics.settings import solver_identity
 from lagfluid.state import SceneParams
+from lagfluid.tasks.config import run_device, scene_params
+from lagfluid.tasks.generate.policy import policy_identity
 
 log = logging.getLogger(__name__)
 
@@ -68,7 +68,7 @@ class DataSpec:
         device: torch device.
         policy: None when the MPS solver moves the particles; else what moves them in an on-policy dataset
             (``data.policy=model``: the model, its stages, its network files' hashes;
-            :mod:`lagfluid.generate.policy`).
+            :mod:`lagfluid.tasks.generate.policy`).
     """
 
     name: str

@@ -1,29 +1,30 @@
-"""Radius graphs over particles, edge geometry, and kernel-weighted sparse adjacency.
+"""Radius graphs over particles: every ordered pair closer than ``r``, exactly, on any device.
 
 Every operator of the split-step scheme is a sum over the neighbours ``j`` of a particle ``i`` within
 some radius ``r_e`` (a multiple of ``l0``). This module finds those pairs once, exactly, on any
-device, and turns kernel weights on them into a CSR matrix so that the neighbour sums become one
-sparse matrix product.
+device (:mod:`lagfluid.neighbors.csr` turns kernel weights on them into a CSR matrix, so that the
+neighbour sums become one sparse matrix product).
 
 Conventions (shared with PyG, ``flow="source_to_target"``):
 
 * ``edge_index[0] = j`` is the source (the neighbour), ``edge_index[1] = i`` the target (the centre),
   so ``rel = pos[j] - pos[i]`` is ``x_j - x_i``.
 * A pair is an edge when ``|x_j - x_i| < r`` (strict), measured by one formula in the input dtype
-  (:func:`_distance`), whichever backend found the candidates. Every backend searches a slightly
-  larger radius and then applies that formula, so all backends return *exactly* the same edges. (The
-  CPU filter of the Verlet list, :mod:`lagfluid.pair_kernels`, reaches the same cut from squared
-  distances at the exact threshold of torch's ``sqrt``.)
+  (:func:`lagfluid.neighbors.geometry.distance`), whichever backend found the candidates. Every backend
+  searches a slightly larger radius and then applies that formula, so all backends return *exactly* the
+  same edges. (The CPU filter of the Verlet list, :mod:`lagfluid.neighbors.pair_kernels`, reaches the same
+  cut from squared distances at the exact threshold of torch's ``sqrt``.)
 * Edges are sorted by target, then source: ready for CSR, and deterministic, so backends can be
   compared edge for edge.
 * The search never truncates silently: with ``max_num_neighbors`` it raises
   :class:`NeighborOverflowError`; without it, every neighbour is returned.
 
-Backends: ``"numba"`` (compiled parallel cell list, CPU default; :func:`lagfluid.pair_kernels.cell_search`),
-``"scipy"`` (k-d tree, the CPU default without Numba), ``"torch_cluster"`` (optional compiled extension,
-CUDA default when installed), ``"cell_list"`` (pure torch cell list, any device), ``"brute"`` (chunked
-all-pairs, the reference for tests). The compiled cell list is the CPU default because it is the fastest
-there (see ``benchmarks/results/neighbors_notes.md``).
+Backends: ``"numba"`` (compiled parallel cell list, CPU default;
+:func:`lagfluid.neighbors.pair_kernels.cell_search`), ``"scipy"`` (k-d tree, the CPU default without
+Numba), ``"torch_cluster"`` (optional compiled extension, CUDA default when installed), ``"cell_list"``
+(pure torch cell list, any device), ``"brute"`` (chunked all-pairs, the reference for tests). The
+compiled cell list is the CPU default because it is the fastest there (see
+``benchmarks/results/neighbors_notes.md``).
 """
 
 from __future__ import annotations
@@ -33,22 +34,16 @@ import importlib
 import itertools
 import logging
 import math
-import warnings
 from types import ModuleType
 
 import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = [
-    "BACKENDS",
-    "NeighborOverflowError",
-    "available_backends",
-    "edge_vectors",
-    "kernel_adjacency",
-    "radius_graph",
-    "restrict_radius",
-]
+from lagfluid.neighbors import pair_kernels
+from lagfluid.neighbors.geometry import distance
+
+__all__ = ["BACKENDS", "NeighborOverflowError", "available_backends", "radius_graph", "restrict_radius"]
 
 log = logging.getLogger(__name__)
 
@@ -102,40 +97,14 @@ def _import_torch_cluster() -> ModuleType | None:
 
 def available_backends() -> tuple[str, ...]:
     """Backends usable in this environment, in the order of :data:`BACKENDS`."""
-    from lagfluid import pair_kernels
-
     missing = {"torch_cluster": _import_torch_cluster() is None, "numba": not pair_kernels.available()}
     return tuple(b for b in BACKENDS if not missing.get(b, False))
 
 
-def _squared_distance(rel: Tensor) -> Tensor:
-    """``x*x + y*y (+ z*z)`` over the last axis, in this fixed order (see :func:`_distance`)."""
-    d2 = rel[..., 0] * rel[..., 0]
-    for k in range(1, rel.shape[-1]):
-        d2 = d2 + rel[..., k] * rel[..., k]
-    return d2
-
-
-def _distance(rel: Tensor) -> Tensor:
-    """Euclidean norm over the last axis, ``sqrt(x*x + y*y (+ z*z))``.
-
-    Every backend decides ``|x_j - x_i| < r`` with this exact sequence of elementwise operations (no
-    reduction kernel whose summation order could depend on layout or device), so a pair that sits
-    within rounding of ``r`` is classified identically everywhere.
-
-    Args:
-        rel: (..., D) differences, D in {2, 3}.
-
-    Returns:
-        (...) distances, same dtype.
-    """
-    return torch.sqrt(_squared_distance(rel))
-
-
 def _candidate_radius(r: float, dtype: torch.dtype) -> float:
-    """Search radius that surely contains every pair with ``_distance(...) < r`` in ``dtype``.
+    """Search radius that surely contains every pair with ``distance(...) < r`` in ``dtype``.
 
-    ``_distance`` in float32 differs from the exact distance by a few ulp, and ``r`` itself is rounded
+    ``distance`` in float32 differs from the exact distance by a few ulp, and ``r`` itself is rounded
     to ``dtype`` in ``dist < r``; 1e-4 relative covers both with a wide margin (it adds ~3e-4 of the
     candidates), and 16 eps covers half precision.
     """
@@ -143,8 +112,8 @@ def _candidate_radius(r: float, dtype: torch.dtype) -> float:
 
 
 def _exact_pairs(pos: Tensor, i: Tensor, j: Tensor, r: float) -> tuple[Tensor, Tensor]:
-    """Keep the candidate pairs with ``i != j`` and ``_distance(pos[j] - pos[i]) < r``."""
-    keep = (i != j) & (_distance(pos[j] - pos[i]) < r)
+    """Keep the candidate pairs with ``i != j`` and ``distance(pos[j] - pos[i]) < r``."""
+    keep = (i != j) & (distance(pos[j] - pos[i]) < r)
     return i[keep], j[keep]
 
 
@@ -244,7 +213,7 @@ def _resolve_backend(backend: str, device: torch.device) -> str:
 
 # ---------------------------------------------------------------------------------------------- backends
 # Each backend returns the exact pairs (i target, j source) with i a receiver, i != j, same graph and
-# _distance < r, in any order; radius_graph adds self loops, sorts and checks the cap.
+# distance < r, in any order; radius_graph adds self loops, sorts and checks the cap.
 
 
 def _search_brute(pos: Tensor, r: float, batch: Tensor | None, recv: Tensor) -> tuple[Tensor, Tensor]:
@@ -255,9 +224,9 @@ def _search_brute(pos: Tensor, r: float, batch: Tensor | None, recv: Tensor) -> 
     out_i, out_j = [], []
     for start in range(0, recv.numel(), chunk):
         centre = recv[start : start + chunk]
-        # Same operation sequence as _distance(pos[j] - pos[i]), so the results are bit-identical.
+        # Same operation sequence as distance(pos[j] - pos[i]), so the results are bit-identical.
         rel = torch.stack([cols[k][None, :] - cols[k][centre, None] for k in range(pos.shape[1])], dim=-1)
-        mask = _distance(rel) < r
+        mask = distance(rel) < r
         mask[torch.arange(centre.numel(), device=pos.device), centre] = False
         if batch is not None:
             mask &= batch[centre, None] == batch[None, :]
@@ -429,7 +398,7 @@ def _search_cell_list(
         )
         centre = lo + torch.div(seg, n_rows, rounding_mode="floor")
         # Same operations as _exact_pairs: bit-identical distances (sorted_pos[k] is pos[order[k]]).
-        keep = _distance(sorted_pos[src] - centre_pos[centre]) < r
+        keep = distance(sorted_pos[src] - centre_pos[centre]) < r
         src, centre = src[keep], centre[keep]
         i, j = recv[centre], order[src]
         keep = i != j
@@ -537,8 +506,6 @@ def radius_graph(
 
     found = None
     if backend == "numba":
-        from lagfluid import pair_kernels
-
         found = pair_kernels.cell_search(pos.detach(), radius, batch, recv)
         if found is None:  # a domain too wide for the cell keys (far-flung particles): the k-d tree
             backend = "scipy"
@@ -569,43 +536,6 @@ def radius_graph(
     return torch.stack([j, i])
 
 
-def edge_vectors(pos: Tensor, edge_index: Tensor) -> tuple[Tensor, Tensor]:
-    """Relative positions and distances along the edges.
-
-    The distance is computed exactly as :func:`radius_graph` decides ``< r``, so
-    ``restrict_radius(edge_index, dist, r)`` on a graph searched at radius ``r`` keeps every edge.
-    Differentiable w.r.t. ``pos``; the gradient of a zero distance (a self loop) is 0, not NaN.
-
-    Args:
-        pos: (N, D) positions.
-        edge_index: (2, E) int64, row 0 = source ``j``, row 1 = target ``i``.
-
-    Returns:
-        rel: (E, D) ``pos[j] - pos[i]``.
-        dist: (E,) ``|pos[j] - pos[i]|``.
-    """
-    # index_select, not pos[idx]: faster for (E, 3) gathers on the CPU, identical values
-    # (see benchmarks/results/neighbors_notes.md).
-    if not (pos.requires_grad and torch.is_grad_enabled()):
-        # In place and on the squared components as one (E, D) array: the same operations in the same
-        # order as _distance (x*x + y*y, then + z*z), so bit-identical, but faster than strided
-        # per-column products (see benchmarks/results/neighbors_notes.md).
-        rel = pos.index_select(0, edge_index[0])
-        rel.sub_(pos.index_select(0, edge_index[1]))
-        sq = rel * rel
-        d2 = sq[:, 0] + sq[:, 1] if rel.shape[1] > 1 else sq[:, 0].clone()
-        for k in range(2, rel.shape[1]):
-            d2 += sq[:, k]
-        return rel, d2.sqrt_()
-    rel = pos.index_select(0, edge_index[0]) - pos.index_select(0, edge_index[1])
-    # sqrt'(0) = inf would turn the gradient of self loops into NaN; where() keeps the forward values
-    # bit-identical for every positive distance.
-    sq = _squared_distance(rel)
-    positive = sq > 0
-    dist = torch.where(positive, torch.sqrt(torch.where(positive, sq, torch.ones_like(sq))), 0.0)
-    return rel, dist
-
-
 def restrict_radius(edge_index: Tensor, dist: Tensor, r: float) -> tuple[Tensor, Tensor]:
     """Sub-graph of the edges shorter than ``r``.
 
@@ -626,93 +556,3 @@ def restrict_radius(edge_index: Tensor, dist: Tensor, r: float) -> tuple[Tensor,
         raise ValueError(f"dist must have shape ({edge_index.shape[-1]},), got {tuple(dist.shape)}")
     mask = dist < radius
     return edge_index[:, mask], mask
-
-
-def kernel_adjacency(edge_index: Tensor, weight: Tensor, num_nodes: int | tuple[int, int]) -> Tensor:
-    """Weighted adjacency as a sparse CSR matrix, so that ``A @ X = sum_j w_ij X_j``.
-
-    FGN's kernel-weighted neighbour sums (number density, gradient, Laplacian, the networks' linear
-    aggregations) are all ``A @ X`` for some weights; one CSR product replaces a gather of ``X[j]``
-    (E x F) and an ``index_add``, and is far faster (see ``benchmarks/results/neighbors_notes.md``).
-
-    Autograd (torch 2.13, checked by ``tests/test_neighbors.py``): ``A @ X`` is differentiable
-    w.r.t. both the dense ``X`` and ``weight`` (the CSR values), including double backward; build
-    ``A`` anew for every forward pass (its graph is consumed by ``backward``). ``A @ x`` for a (N,)
-    vector works too.
-
-    Args:
-        edge_index: (2, E) int64, row 0 = source ``j`` (column), row 1 = target ``i`` (row); each
-            pair at most once. Edges sorted by target then source (as :func:`radius_graph` returns
-            them) are used as they are; otherwise they are sorted here.
-        weight: (E,) floating edge weights ``w_ij``.
-        num_nodes: N for a square (N, N) matrix, or (N_target, N_source).
-
-    Returns:
-        (N_target, N_source) ``torch.sparse_csr`` tensor with ``A[i, j] = w_ij``, on
-        ``weight.device``, dtype of ``weight``.
-
-    Raises:
-        ValueError: mismatched shapes, indices out of range, or a repeated pair.
-    """
-    n_target, n_source = (num_nodes, num_nodes) if isinstance(num_nodes, int) else tuple(num_nodes)
-    if edge_index.dim() != 2 or edge_index.shape[0] != 2:
-        raise ValueError(f"edge_index must have shape (2, E), got {tuple(edge_index.shape)}")
-    e = edge_index.shape[1]
-    if weight.shape != (e,):
-        raise ValueError(f"weight must have shape ({e},), got {tuple(weight.shape)}")
-    if n_target < 0 or n_source < 0:
-        raise ValueError(f"num_nodes must be >= 0, got {num_nodes!r}")
-    j, i = edge_index[0].long(), edge_index[1].long()
-    crow = _compiled_row_pointer(i, j, n_target, n_source)
-    if crow is not None:  # sorted, each pair once, in range: checked and indexed in one compiled pass
-        return _csr(crow, j, weight, n_target, n_source)
-    if e:
-        key = i * n_source + j
-        # The range and order checks in one read of the device (on CUDA each read is a synchronisation).
-        checks = [i.min(), i.max(), j.min(), j.max(), (key[1:] <= key[:-1]).any().long()]
-        lo_i, hi_i, lo_j, hi_j, unordered = torch.stack(checks).tolist()
-        for name, lo, hi, size in (("target", lo_i, hi_i, n_target), ("source", lo_j, hi_j, n_source)):
-            if lo < 0 or hi >= size:
-                raise ValueError(f"{name} index out of range [0, {size}): min {lo}, max {hi}")
-        if unordered:
-            order = torch.argsort(key)
-            i, j, weight, key = i[order], j[order], weight[order], key[order]
-            repeated = key[1:] == key[:-1]
-            if bool(repeated.any()):
-                k = int(torch.nonzero(repeated)[0, 0])
-                raise ValueError(f"edge (j={int(j[k])}, i={int(i[k])}) appears more than once in edge_index")
-    # i is sorted: row r starts at the first i >= r (no bincount, whose size on CUDA needs a read of max(i))
-    rows = torch.arange(n_target + 1, dtype=i.dtype, device=i.device)
-    crow = torch.searchsorted(i.contiguous(), rows)
-    return _csr(crow, j, weight, n_target, n_source)
-
-
-def _csr(crow: Tensor, col: Tensor, weight: Tensor, n_target: int, n_source: int) -> Tensor:
-    with warnings.catch_warnings():
-        # "Sparse CSR tensor support is in beta state": matmul and its autograd are what we use, tested.
-        warnings.filterwarnings("ignore", message=".*Sparse CSR tensor support is in beta.*")
-        return torch.sparse_csr_tensor(crow, col, weight, size=(n_target, n_source), check_invariants=False)
-
-
-def _compiled_row_pointer(i: Tensor, j: Tensor, n_target: int, n_source: int) -> Tensor | None:
-    """(n_target + 1,) CSR row pointer of pairs ``(i, j)`` sorted by ``i`` then ``j``, checked in one pass.
-
-    The pairs must be sorted, each once, in range; None when they are not (the torch path then sorts them
-    or reports the bad index) or off the CPU. The torch checks and ``bincount`` take ~8 passes over the
-    pairs (the step builds two such matrices of ~1.5M pairs at 40k particles: see
-    ``benchmarks/results/fgn_speed.md``).
-    """
-    from lagfluid import pair_kernels
-
-    if i.numel() == 0 or not pair_kernels.applies(i, j):
-        return None
-    kern = pair_kernels.load("lagfluid.physics._operators_numba")
-    if kern is None:
-        return None
-    dst, src = i.contiguous().numpy(), j.contiguous().numpy()
-    pair_kernels.set_threads()
-    row_ptr = np.empty(n_target + 1, dtype=np.int64)
-    unordered, outside = kern.check_pairs(dst, src, n_target, n_source, row_ptr)
-    if unordered or outside:
-        return None
-    return torch.from_numpy(row_ptr)

@@ -5,7 +5,7 @@
 CUDA, each rank on ``cuda:LOCAL_RANK``). Then, per iteration:
 
 * :class:`RankBatches` gives rank ``r`` the ``r``-th of N contiguous pieces of the global batch
-  (:class:`~lagfluid.train.EpochBatches`: ``train.batch_size`` is the *global* batch);
+  (:class:`~lagfluid.tasks.train.EpochBatches`: ``train.batch_size`` is the *global* batch);
 * each rank scales its mean loss by ``n_r N / n`` (``n_r`` its rows, ``n`` the batch's) and
   :func:`average_gradients` averages the gradients over the ranks, which sums to the gradient of the global
   batch's mean (for a loss that is a mean over rows, as every built-in one is); every rank's Adam then takes

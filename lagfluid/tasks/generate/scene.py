@@ -12,7 +12,6 @@ from typing import Any
 
 from omegaconf import DictConfig
 
-from lagfluid.config import check_run_memory, run_attributes
 from lagfluid.data.layout import (
     GROUP,
     SampleWriter,
@@ -21,14 +20,15 @@ from lagfluid.data.layout import (
 )
 from lagfluid.data.store import TrajectoryFileError, TrajectoryWriter
 from lagfluid.errors import LagfluidError, RolloutError, SceneError
-from lagfluid.generate.collision import write_collision_samples
-from lagfluid.generate.policy import build_policy
-from lagfluid.generate.spec import DataSpec
 from lagfluid.models.mps_simulator import build_mps
 from lagfluid.physics.settings import SolverSettings
 from lagfluid.rollout import Guard, rollout
 from lagfluid.scenes import build_scene
 from lagfluid.state import ParticleState
+from lagfluid.tasks.config import check_run_memory, run_attributes
+from lagfluid.tasks.generate.collision import write_collision_samples
+from lagfluid.tasks.generate.policy import build_policy
+from lagfluid.tasks.generate.spec import DataSpec
 
 log = logging.getLogger(__name__)
 
@@ -36,7 +36,8 @@ log = logging.getLogger(__name__)
 def scene_done(path: Path, fingerprint: str, samples: bool = True) -> bool:
     """True for a finished scene file made with ``fingerprint``; False when it must be (re)generated.
 
-    ``samples=False``: a scene without the stage samples (a DAgger scene, :mod:`lagfluid.generate.expert`).
+    ``samples=False``: a scene without the stage samples (a DAgger scene,
+    :mod:`lagfluid.tasks.generate.expert`).
 
     Raises:
         LagfluidError: a finished file made with another configuration.
@@ -65,7 +66,7 @@ def generate_scene(cfg: DictConfig, spec: DataSpec, index: int) -> Path:
     """Simulate scene ``index`` with MPS and write its file (trajectory + samples); returns the path.
 
     With ``spec.policy`` the scene is moved by ``cfg.model`` instead, each sample labelled by the exact
-    stages at the model's own states (:mod:`lagfluid.generate.policy`).
+    stages at the model's own states (:mod:`lagfluid.tasks.generate.policy`).
 
     Raises:
         LagfluidError: the rollout guard stopped the scene (the file is kept as ``*.failed.h5``), or the scene

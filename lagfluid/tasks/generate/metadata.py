@@ -13,7 +13,6 @@ from typing import Any
 import numpy as np
 
 import lagfluid
-from lagfluid.config import git_commit
 from lagfluid.data.layout import (
     DATASET_FORMAT,
     METADATA_FILE,
@@ -24,8 +23,9 @@ from lagfluid.data.layout import (
     split_of,
 )
 from lagfluid.data.statistics import STATISTICS, dataset_statistics
-from lagfluid.generate.spec import DataSpec
 from lagfluid.physics.settings import SolverSettings
+from lagfluid.tasks.config import git_commit
+from lagfluid.tasks.generate.spec import DataSpec
 
 log = logging.getLogger(__name__)
 
@@ -119,7 +119,7 @@ def write_metadata(spec: DataSpec, generation_seconds: float | None = None) -> d
         "collision": spec.collision,
         "solver": spec.solver,
         "model": "mps" if spec.policy is None else spec.policy["model"],
-        # an on-policy dataset's (lagfluid.generate.policy): what moved the particles
+        # an on-policy dataset's (lagfluid.tasks.generate.policy): what moved the particles
         **({"policy": spec.policy} if spec.policy is not None else {}),
         "version": lagfluid.__version__,
         "git_commit": git_commit(),

@@ -72,7 +72,7 @@ def build_policy(cfg: Any) -> SplitStepSimulator:
         ConfigError: ``cfg.model`` is not a split-step model, or skips a stage (``none``): a sample needs
             the advection and pressure labels.
     """
-    from lagfluid.config import build_simulator
+    from lagfluid.tasks.config import build_simulator
 
     sim = build_simulator(cfg)
     if not isinstance(sim, SplitStepSimulator):

@@ -13,7 +13,12 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 import lagfluid
-from lagfluid.config import (
+from lagfluid.errors import ConfigError, RolloutError
+from lagfluid.memory import exact_step_bytes
+from lagfluid.models.simulator import Simulator
+from lagfluid.physics.settings import SolverSettings
+from lagfluid.state import ParticleState
+from lagfluid.tasks.config import (
     apply_threads,
     at_simulator_time_step,
     build_initial_state,
@@ -24,19 +29,14 @@ from lagfluid.config import (
     run_device,
     scene_params,
 )
-from lagfluid.errors import ConfigError, RolloutError
-from lagfluid.evaluate.compare import compare, summaries
-from lagfluid.evaluate.figures import plot_errors, plot_pressure_slice
-from lagfluid.evaluate.model_run import run_model
-from lagfluid.evaluate.options import EvaluateOptions
-from lagfluid.evaluate.reference import key_hash, reference_rollout
-from lagfluid.export.animation import side_by_side
-from lagfluid.locks import hold_outputs
-from lagfluid.memory import exact_step_bytes
-from lagfluid.models.simulator import Simulator
-from lagfluid.outputs import begin, part_path, publish, write_json
-from lagfluid.physics.settings import SolverSettings
-from lagfluid.state import ParticleState
+from lagfluid.tasks.evaluate.compare import compare, summaries
+from lagfluid.tasks.evaluate.figures import plot_errors, plot_pressure_slice
+from lagfluid.tasks.evaluate.model_run import run_model
+from lagfluid.tasks.evaluate.options import EvaluateOptions
+from lagfluid.tasks.evaluate.reference import key_hash, reference_rollout
+from lagfluid.tasks.export.animation import side_by_side
+from lagfluid.tasks.locks import hold_outputs
+from lagfluid.tasks.outputs import begin, part_path, publish, write_json
 from lagfluid.viz import colour_field, stopped_title
 
 log = logging.getLogger(__name__)

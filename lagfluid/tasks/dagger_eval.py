@@ -1,8 +1,8 @@
 """What each DAgger round bought: the model's rollout of the dam, complete or the step the guard stopped it.
 
-After each round of :mod:`lagfluid.dagger_rounds` (and for its starting weights, round 0), ``task=simulate``
-rolls the round's weights out on ``train.dagger.dam_scene`` (``dam``, the scene every model stops on) for
-``train.dagger.dam_steps`` steps (125 of GNS's 8 ms: the 1 s dam), exactly as
+After each round of :mod:`lagfluid.tasks.dagger_rounds` (and for its starting weights, round 0),
+``task=simulate`` rolls the round's weights out on ``train.dagger.dam_scene`` (``dam``, the scene every model
+stops on) for ``train.dagger.dam_steps`` steps (125 of GNS's 8 ms: the 1 s dam), exactly as
 ``python -m lagfluid.run model=gns scene=dam model.weights=<round folder>`` would, into
 ``<out_dir>/dagger/round<k>/dam/`` (``rollout.h5``, ``metrics.json``, ``preview.png``). Its result is kept in
 ``dam.json`` there (a rerun with the same weights, scene and steps skips the rollout) and every round's
@@ -24,8 +24,8 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 from lagfluid.errors import ConfigError, RolloutError
-from lagfluid.outputs import write_json
 from lagfluid.plugin_configs import CONF_DIR
+from lagfluid.tasks.outputs import write_json
 
 log = logging.getLogger(__name__)
 
@@ -73,7 +73,7 @@ def dam_result(cfg: DictConfig, k: int, weights: Path, scene: str, steps: int, o
         kept = json.loads(record.read_text())
         if (kept["weights"], kept["scene"], kept["steps_requested"]) == (str(weights), scene, steps):
             return kept
-    from lagfluid.simulate import simulate
+    from lagfluid.tasks.simulate import simulate
 
     try:
         metrics = simulate(_rollout_config(cfg, weights, scene, steps, out))

@@ -34,12 +34,12 @@ it, exactly as above.
 
 **On-policy rounds.** ``train.onpolicy.rounds=R`` (with ``stage=all``, or a stage in
 ``train.onpolicy.trainables``) then fine-tunes those networks on R rounds of the model's own rollouts
-labelled by the exact solver (DAgger; :mod:`lagfluid.onpolicy_rounds`); the last round's folder holds the
-run's final networks.
+labelled by the exact solver (DAgger; :mod:`lagfluid.tasks.onpolicy_rounds`); the last round's folder holds
+the run's final networks.
 
 **DAgger rounds for end-to-end models.** ``train.dagger.rounds=R`` (GNS: ``train=gns_dagger``) then rolls
 the model out on the training scenes, labels its own states by one MPS model step and fine-tunes it on the
-original data and rounds 1..k's together, R times (:mod:`lagfluid.dagger_rounds`); with
+original data and rounds 1..k's together, R times (:mod:`lagfluid.tasks.dagger_rounds`); with
 ``train.dagger.start_from=DIR`` the rounds start from those weights and nothing is trained in ``out_dir``
 first.
 
@@ -70,18 +70,18 @@ from torch.utils.data import ConcatDataset
 from torch_geometric.loader import DataLoader
 
 import lagfluid
-from lagfluid import distributed
-from lagfluid.config import apply_threads, run_device
-from lagfluid.dagger_rounds import DAgger, run_dagger
 from lagfluid.data.datasets import load_metadata
 from lagfluid.errors import ConfigError, LagfluidError
-from lagfluid.locks import hold_outputs
 from lagfluid.models.checkpoint import export_weights, network_payload, read_checkpoint, save_checkpoint
 from lagfluid.models.trainable import Trainable
 from lagfluid.models.training_range import UNITS, range_from_checkpoint_meta, training_range
-from lagfluid.onpolicy_rounds import OnPolicy, check_same_scenes, run_rounds
 from lagfluid.progress import progress_bar
 from lagfluid.registry import get_trainables
+from lagfluid.tasks import distributed
+from lagfluid.tasks.config import apply_threads, run_device
+from lagfluid.tasks.dagger_rounds import DAgger, run_dagger
+from lagfluid.tasks.locks import hold_outputs
+from lagfluid.tasks.onpolicy_rounds import OnPolicy, check_same_scenes, run_rounds
 
 log = logging.getLogger(__name__)
 
@@ -310,9 +310,9 @@ class Trainer:
     def build(self) -> None:
         """The network (seeded by ``cfg.seed``) and its Adam optimizer, on the run's device set-up.
 
-        Sets ``device``, ``rank``/``ranks`` (torchrun, :mod:`lagfluid.distributed`), ``main`` (rank 0 writes
-        the files), ``net`` and ``optimizer``. A run without a checkpoint and with ``train.init_from`` starts
-        from those weights (:meth:`fine_tune_from`).
+        Sets ``device``, ``rank``/``ranks`` (torchrun, :mod:`lagfluid.tasks.distributed`), ``main`` (rank 0
+        writes the files), ``net`` and ``optimizer``. A run without a checkpoint and with ``train.init_from``
+        starts from those weights (:meth:`fine_tune_from`).
         """
         torch.manual_seed(int(self.cfg.seed))
         self.device = distributed.init(run_device(self.cfg))

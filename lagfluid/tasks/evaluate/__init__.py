@@ -49,9 +49,9 @@ A model stopped by the rollout guard is a result, not a failure: what it wrote i
 
 from __future__ import annotations
 
-from lagfluid.evaluate.compare import compare
-from lagfluid.evaluate.options import EvaluateOptions
-from lagfluid.evaluate.reference import (
+from lagfluid.tasks.evaluate.compare import compare
+from lagfluid.tasks.evaluate.options import EvaluateOptions
+from lagfluid.tasks.evaluate.reference import (
     cached_reference_problem,
     expected_frames,
     key_hash,
@@ -59,7 +59,7 @@ from lagfluid.evaluate.reference import (
     reference_rollout,
     reference_settings,
 )
-from lagfluid.evaluate.task import evaluate
+from lagfluid.tasks.evaluate.task import evaluate
 
 __all__ = [
     "EvaluateOptions",

@@ -7,15 +7,16 @@ the dam, GNS drives fluid into a wall it was never shown that close, and the gua
 1. ``<out_dir>/dagger/round<k>/data``: the training dataset's own training scenes (same scene, seeds,
    steps, materials; fingerprints checked before anything runs) rolled out by the model with its weights
    of round k-1 (round 0: ``train.dagger.start_from``, or the run's own one-step training in ``out_dir``),
-   labelled every ``train.dagger.every``-th frame by one MPS model step from the model's state, up to where
-   the model's guard stops it (:mod:`lagfluid.generate.expert`; layout :mod:`lagfluid.data.expert_windows`);
+   labelled every ``train.dagger.every``-th frame by one MPS model step from the model's state, up to
+   where the model's guard stops it (:mod:`lagfluid.tasks.generate.expert`; layout
+   :mod:`lagfluid.data.expert_windows`);
 2. each of the model's trainables fine-tuned from its round k-1 weights (``train.init_from``) on the
    original data and rounds 1..k's together (``train.extra_data``: DAgger's aggregation; validation stays
    on the original's valid split), ``train.dagger.iterations`` at ``train.dagger.lr_start`` decaying to
    ``train.lr_end``, with the profile's other settings (noise, pushforward), into
    ``<out_dir>/dagger/round<k>/<name>.pt``: each round folder is a complete ``model.weights``;
 3. with ``train.dagger.dam_steps`` > 0, that round's rollout of the dam, complete or where the guard
-   stopped it (:mod:`lagfluid.dagger_eval`, also for round 0), in ``<out_dir>/dagger/dam.csv``.
+   stopped it (:mod:`lagfluid.tasks.dagger_eval`, also for round 0), in ``<out_dir>/dagger/dam.csv``.
 
 **The policy with exact stages after it.** With ``model.exact_after`` on, the rounds roll out the model
 followed by those stages (the hybrid row the tables show, e.g. ``cconv_exact``) and label the hybrid's
@@ -38,10 +39,10 @@ from typing import Any
 
 from omegaconf import DictConfig, open_dict
 
-from lagfluid.dagger_eval import dam_result, scene_config, write_summary
 from lagfluid.errors import ConfigError
-from lagfluid.onpolicy_rounds import dataset_generate_config, generate_scenes, round_dir
 from lagfluid.registry import get_trainables
+from lagfluid.tasks.dagger_eval import dam_result, scene_config, write_summary
+from lagfluid.tasks.onpolicy_rounds import dataset_generate_config, generate_scenes, round_dir
 
 log = logging.getLogger(__name__)
 
@@ -139,9 +140,9 @@ def expert_data_config(
 ) -> DictConfig:
     """``cfg`` as the generation of the DAgger dataset ``data_dir``: the dataset's scenes, ``policy``'s model.
 
-    The dataset's own generation settings (:func:`~lagfluid.onpolicy_rounds.dataset_generate_config`), moved
-    by the model with the weights in ``policy`` (and ``cfg.model.exact_after``'s stages after each step, if
-    on), labelled every ``every``-th frame by ``horizon`` model steps of MPS.
+    The dataset's own generation settings (:func:`~lagfluid.tasks.onpolicy_rounds.dataset_generate_config`),
+    moved by the model with the weights in ``policy`` (and ``cfg.model.exact_after``'s stages after each
+    step, if on), labelled every ``every``-th frame by ``horizon`` model steps of MPS.
     """
     gen = dataset_generate_config(cfg, None, data_dir)
     with open_dict(gen):
@@ -176,7 +177,7 @@ def run_dagger(
         cfg: the ``task=train`` config.
         settings: its ``train.dagger`` (:meth:`DAgger.from_config`, rounds >= 1).
         out_dir: the run's folder.
-        train_one: :func:`lagfluid.train.train_one` (passed in: this module is one of its callers').
+        train_one: :func:`lagfluid.tasks.train.train_one` (passed in: this module is one of its callers').
 
     Returns:
         the last round's folder (a complete ``model.weights``).
@@ -184,8 +185,8 @@ def run_dagger(
     Raises:
         ConfigError: a network of the model missing from the start weights, or a split-step model.
     """
-    from lagfluid.generate.expert import end_to_end_simulator, generate_expert, train_scenes
-    from lagfluid.generate.spec import DataSpec
+    from lagfluid.tasks.generate.expert import end_to_end_simulator, generate_expert, train_scenes
+    from lagfluid.tasks.generate.spec import DataSpec
 
     model, names = str(cfg.model.name), list(get_trainables(str(cfg.model.name), cfg))
     start = settings.weights(out_dir, 0)

@@ -16,11 +16,11 @@ from lagfluid.data.layout import (
     append_rows,
     appendable,
 )
-from lagfluid.generate.spec import DataSpec, draw
 from lagfluid.physics.mps import CollisionRule
 from lagfluid.physics.scheme import SplitStepSimulator
 from lagfluid.physics.settings import SolverSettings
 from lagfluid.state import ParticleState, ParticleType, SceneParams
+from lagfluid.tasks.generate.spec import DataSpec, draw
 
 log = logging.getLogger(__name__)
 
