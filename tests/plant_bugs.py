@@ -982,6 +982,35 @@ PLANTS = [
         "from lagfluid.run import CONF_DIR\nfrom lagfluid.data.store import ",
         "tests/test_layers.py::test_imports_point_one_way",
     ),
+    # issue 35: DAgger for CConv (labels of two MPS steps, its windows), a policy with exact stages after it
+    (
+        "exact_after: the hybrid says every step was the model's (DAgger labels GNS's MPS warm-start frames)",
+        "lagfluid/models/exact_after.py",
+        "        return self._ran\n",
+        "        return True\n",
+        "tests/test_exact_after.py::test_gns_history_after_a_corrected_step_is_the_corrected_displacement",
+    ),
+    (
+        "expert: MPS's second label step starts again from the model's frame instead of its own answer",
+        "lagfluid/tasks/generate/expert.py",
+        "            answer = answers[-1]\n",
+        "            answer = after\n",
+        "tests/test_dagger_cconv.py::test_the_hybrid_rolls_the_scenes_out_and_each_label_is_two_mps_steps_from_its_state",
+    ),
+    (
+        "expert windows: CConv's velocity taken from the frame itself (zero) instead of the frames before it",
+        "lagfluid/data/expert_windows.py",
+        'before, now = g["position"][t - 1], g["position"][t]',
+        'before, now = g["position"][t], g["position"][t]',
+        "tests/test_dagger_cconv.py::test_cconvs_window_of_the_hybrid_is_its_state_the_frames_velocity_and_mps_two_steps",
+    ),
+    (
+        "cconv: a DAgger dataset read as the solver's windows",
+        "baselines/cconv/trainable.py",
+        "return step_windows(data_dir, split, UNROLL, boundary_radius=crop)",
+        "return StepWindows(data_dir, split, steps=UNROLL, boundary_radius=crop)",
+        "tests/test_dagger_cconv.py::test_cconvs_window_of_the_hybrid_is_its_state_the_frames_velocity_and_mps_two_steps",
+    ),
 ]
 
 

@@ -188,12 +188,14 @@ def test_gns_history_after_a_corrected_step_is_the_corrected_displacement():
     for _ in range(5):  # the MPS warm start: its frames are left as they are
         a, b = sim.step(a), plain.step(b)
         assert not sim.model.last_step_learned and torch.equal(a.pos, b.pos)
+        assert not sim.last_step_learned  # the hybrid says so too: a DAgger rollout labels none of these
         assert "exact_pressure_solve" not in sim.last_timings
     nf, dt = state.n_fluid, sim.dt
     for _ in range(2):
         before = a
         a, b = sim.step(before), plain.step(before)
         assert sim.model.last_step_learned and not torch.equal(a.pos, b.pos)  # the stages moved particles
+        assert sim.last_step_learned
         assert torch.equal(sim.model._velocities[:, -1], (a.pos[:nf] - before.pos[:nf]) / dt)
         torch.testing.assert_close(sim.model._velocities[:, -1], a.vel[:nf], rtol=0, atol=1e-4)
         plain.restore_rollout_memory(a, sim.model.rollout_memory())  # the plain one follows the corrected run

@@ -198,6 +198,14 @@ class ExactAfter:
         return self.model.parameters
 
     @property
+    def last_step_learned(self) -> bool:
+        """Whether the last step was the model's own, followed by the stages (GNS's MPS warm start is not).
+
+        A DAgger rollout of this hybrid labels only such steps (:mod:`lagfluid.tasks.generate.expert`).
+        """
+        return self._ran
+
+    @property
     def last_timings(self) -> dict[str, float]:
         """The model's timings, the exact stages' added (``exact_<stage>``; their search to ``neighbors``)."""
         timings = dict(self.model.last_timings)
