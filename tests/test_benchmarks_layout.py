@@ -37,6 +37,7 @@ ROOT = {
     "fgn_recipe.py",
     "exact_after.py",
     "levers.py",
+    "dagger_rounds.py",
     "unseen_obstacles.py",
     "wall_approach.py",
     "cconv_finetune_loss.py",

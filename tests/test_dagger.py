@@ -200,6 +200,25 @@ def test_each_rounds_dam_rollout_is_measured_and_a_rerun_redoes_nothing(two_roun
     assert [p.stat().st_mtime_ns for p in watched] == stamps
 
 
+def test_the_rounds_benchmark_compares_each_rounds_dam_rollout_with_the_reference(two_rounds, tmp_path):
+    """``benchmarks.dagger_rounds``: a row per round from its stored dam rollout; against round 0's own
+    rollout as the reference, round 0 is 0 mm away and the fine-tuned rounds are not."""
+    from benchmarks.dagger_rounds import main, round_rows
+    from lagfluid.physics.settings import SolverSettings
+
+    _, out = two_rounds
+    reference = out / "dagger" / "round0" / "dam" / "rollout.h5"
+    rows = round_rows(out, reference, SolverSettings.from_config(_compose().solver))
+    assert [r["round"] for r in rows] == [0, 1, 2] and {r["rollout"] for r in rows} == {"complete"}
+    assert rows[0]["chamfer_mean_mm"] == 0.0 and rows[0]["density_error_mean"] == rows[0]["density_error_mps"]
+    assert rows[2]["chamfer_max_mm"] > 0.0
+    assert all(r["frames_compared"] == rows[0]["frames_compared"] for r in rows)
+    main([str(out), "--reference", str(reference), "--name", "r", "--about", "x", "--results", str(tmp_path)])
+    assert (tmp_path / "r.csv").read_text().splitlines()[0].startswith("round,rollout,frames_compared")
+    with pytest.raises(SystemExit, match=r"holds no dagger/dam\.csv"):
+        round_rows(tmp_path, reference, SolverSettings.from_config(_compose().solver))
+
+
 def test_start_from_skips_the_one_step_training_and_every_k_labels_every_kth_own_frame(
     two_rounds, tiny_data, tmp_path
 ):
