@@ -112,7 +112,9 @@ class VerletNeighborList:
         self._built_at: Tensor | None = None
         self._static: _WallRows | None = None
         self._fluid_rows: tuple[Tensor, int, int] | None = None  # (ptype, its _version, its FLUID count)
+        self._boundary: pair_kernels.StaticBoundary | None = None  # the boundary's index (compiled search)
         self.builds = 0
+        self.boundary_builds = 0  # how often the static boundary was indexed (once per scene)
 
     @property
     def list_radius(self) -> float:
@@ -124,6 +126,7 @@ class VerletNeighborList:
         self.candidates = None
         self._built_at = None
         self._static = None
+        self._boundary = None
 
     def needs_rebuild(self, pos: Tensor, n_fluid: int) -> bool:
         """True when a fluid particle has moved more than ``skin / 2`` since the last build.
@@ -174,7 +177,23 @@ class VerletNeighborList:
         return True
 
     def _search_compiled(self, pos: Tensor, fluid: Tensor, walls: Tensor, n_fluid: int) -> tuple[Tensor, int]:
-        """:meth:`_search` from one compiled cell list (the torch body where the box is too wide for one)."""
+        """:meth:`_search` by compiled cell lists (the torch body where the box is too wide for one).
+
+        The boundary (rows from ``n_fluid``, static) is indexed once per scene (:class:`StaticBoundary`,
+        rebuilt whenever its positions or wall flags differ from the cached ones), so a rebuild searches
+        only the fluid (:func:`pair_kernels.verlet_candidates`); one cell list over every particle where the
+        fluid rows are not first or the fluid's box is too wide.
+        """
+        if bool(fluid[:n_fluid].all()):  # the fluid is the first n_fluid rows (the split search's premise)
+            static = self._boundary
+            if static is None or not static.matches(pos, walls, n_fluid, self.list_radius):
+                static = pair_kernels.StaticBoundary.build(pos, walls, n_fluid, self.list_radius)
+                self._boundary = static
+                self.boundary_builds += 1
+            if static is not None:
+                found = pair_kernels.verlet_candidates(pos, static, self.wall_hops)
+                if found is not None:
+                    return found
         cells = pair_kernels.CellList.build(pos, self.list_radius)
         if cells is None:  # far-flung particles: too many cells for the dense cell table
             return self._search(pos, fluid, walls, n_fluid)
