@@ -489,3 +489,20 @@ def test_kernel_adjacency_gradients():
     g2 = torch.autograd.grad(ref.square().sum(), (p, x))
     for a, b in zip(g1, g2, strict=True):
         assert torch.allclose(a, b, rtol=1e-10, atol=1e-12)
+
+
+@pytest.mark.parametrize("library", ["vesin", "warp"])
+def test_the_benchmarks_optional_libraries_find_our_pairs(library):
+    """vesin and warp-lang, timed beside our search by ``benchmarks.neighbors --verlet``, find the same pairs.
+
+    A jittered block (no pair within rounding of r, where float formulas may differ); skipped without them.
+    """
+    pytest.importorskip(library)
+    from benchmarks.neighbors import fluid_block, vesin_pairs, warp_pairs
+
+    pos = fluid_block(600, jitter=0.2, seed=3)
+    r = 2.1 * L0
+    got = (vesin_pairs if library == "vesin" else warp_pairs)(pos, r)
+    want = radius_graph(pos, r)
+    assert want.shape[1] > 20 * 600
+    assert torch.equal(got, want)
