@@ -201,7 +201,9 @@ class VerletNeighborList:
         return candidates, int(torch.searchsorted(candidates[1], torch.tensor(n_fluid)))
 
     def _search_with_cells(self, cells: pair_kernels.CellList, fluid: Tensor, walls: Tensor) -> Tensor:
-        """The candidates (2, E) from one compiled cell list (what :meth:`_search` finds, in one pass).
+        """The candidates (2, E) from one compiled cell list over every particle (what :meth:`_search` finds).
+
+        The compiled search where the split one (:func:`pair_kernels.verlet_candidates`) does not apply.
 
         The walls within ``wall_hops`` hops are found by any-neighbour queries over the walls, then the fluid
         and those walls are searched together (fluid rows first, so the edges come sorted by target exactly
