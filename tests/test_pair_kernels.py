@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from lagfluid.neighbors import edge_vectors, pair_kernels
-from lagfluid.neighbors.verlet import VerletNeighborList
+from lagfluid.neighbors.verlet import VerletNeighborList, _WallRows
 from lagfluid.scenes import build_scene
 
 pytestmark = pytest.mark.skipif(not pair_kernels.available(), reason="numba not installed")
@@ -248,6 +248,11 @@ def test_split_search_gives_the_candidates_of_brute_force_and_of_one_cell_list(d
         want, want_prefix = candidates(split_lists(wall_hops, backend="brute"), pos, ptype)
         assert torch.equal(got, want) and prefix == want_prefix, name
         assert torch.equal(got, one_cell_list(fast, pos, ptype)), name
+        # the wall rows' index from the boundary's static hops == filtering the boundary-source pairs again
+        want_rows = _WallRows.build(pos, got[:, prefix:], int((ptype == 1).sum()), fast.cutoff)
+        for field in ("dyn", "dyn_edges", "dyn_dst", "hop_src", "hop_dst", "boundary_at"):
+            assert torch.equal(getattr(fast._static, field), getattr(want_rows, field)), (name, field)
+        assert fast._static.closest_static == want_rows.closest_static, name
     # the lattice has pairs at exactly the list radius: none of them is a candidate (the cut is strict)
     pos, ptype = floor_tank(dtype)
     got, _ = candidates(split_lists(wall_hops), pos, ptype)

@@ -30,6 +30,7 @@ from __future__ import annotations
 import functools
 import importlib
 import logging
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from types import ModuleType
@@ -560,6 +561,26 @@ class StaticBoundary:
     wall_row: np.ndarray
     ptr: np.ndarray
     src: np.ndarray
+    _hops: tuple[float, np.ndarray, np.ndarray, np.ndarray] | None = None
+
+    def hop_rows(self, cutoff: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The walls' static sources closer than ``cutoff`` (the hops between walls), made once per cutoff.
+
+        Returns:
+            ptr (W + 1,) int64 and src (local, int64) as CSR rows over the walls, in the rows' order, and
+            (W,) float64 each row's shortest such distance (inf for none), as the compiled filter computes it.
+        """
+        if self._hops is None or self._hops[0] != cutoff:
+            counts = np.diff(self.ptr)
+            edges = np.stack([self.src.astype(np.int64), np.repeat(self.wall_local, counts)])
+            kept, _, dist = pairs_within(torch.from_numpy(self.boundary), [torch.from_numpy(edges)], cutoff)
+            rows = torch.from_numpy(self.wall_row)[kept[1]]
+            ptr = np.zeros(self.ptr.shape[0], dtype=np.int64)
+            np.cumsum(np.bincount(rows.numpy(), minlength=ptr.shape[0] - 1), out=ptr[1:])
+            closest = torch.full((ptr.shape[0] - 1,), math.inf, dtype=torch.float64)
+            closest.scatter_reduce_(0, rows, dist.double(), "amin")
+            self._hops = (cutoff, ptr, kept[0].numpy(), closest.numpy())
+        return self._hops[1], self._hops[2], self._hops[3]
 
     @classmethod
     def build(cls, pos: Tensor, walls: Tensor, n_fluid: int, radius: float) -> StaticBoundary | None:
@@ -597,9 +618,36 @@ class StaticBoundary:
         return bool(same_pos and np.array_equal(_as_numpy(walls[n_fluid:]), self.walls))
 
 
+@dataclass(frozen=True)
+class WallLayout:
+    """Where the wall rows of :func:`verlet_candidates` lie in its candidates after the fluid rows.
+
+    Attributes:
+        targets: (T,) int64 the wall targets (local boundary indices, ascending); rows: their static rows.
+        from_fluid: (T,) int64 how many fluid sources each has (the first pairs of its row).
+        starts: (T,) int64 where each row starts, counted from the first wall row.
+    """
+
+    targets: np.ndarray
+    rows: np.ndarray
+    from_fluid: np.ndarray
+    starts: np.ndarray
+
+    def dynamic(self) -> np.ndarray:
+        """(E_d,) int64 where (from the first wall row) the pairs with a fluid source lie, ascending."""
+        return _ranges(self.starts, self.from_fluid)
+
+
+def _ranges(starts: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """``concatenate([arange(s, s + c) for s, c in zip(starts, counts)])`` without a Python loop."""
+    total = int(counts.sum())
+    shift = np.repeat(starts - (np.cumsum(counts) - counts), counts)
+    return shift + np.arange(total, dtype=np.int64)
+
+
 def verlet_candidates(
     pos: Tensor, static: StaticBoundary, wall_hops: int | None
-) -> tuple[Tensor, int] | None:
+) -> tuple[Tensor, int, WallLayout] | None:
     """The Verlet list's candidates (2, E) at ``pos`` (N, D), searching only the fluid (rows < n_fluid).
 
     The same pairs in the same order as one cell list over every particle with receivers the fluid and the
@@ -610,8 +658,8 @@ def verlet_candidates(
     the distance the same operations with the difference negated (its square is the same number).
 
     Returns:
-        (candidates, how many of them are pairs into the fluid), or None when the fluid's box holds too many
-        cells for a dense cell table.
+        (candidates, how many of them are pairs into the fluid, where the wall rows lie), or None when the
+        fluid's box holds too many cells for a dense cell table.
     """
     kern = _kernels()
     nf, nb = static.n_fluid, static.boundary.shape[0]
@@ -652,4 +700,4 @@ def verlet_candidates(
     cursor[targets] = w_off[:-1]
     kern.wall_rows_from_fluid(fb.slots, fb.buf, fb.counts, nf, cursor, out[1], out[0])
     kern.wall_rows_static(targets, rows, static.ptr, static.src, nf, w_off[:-1] + wf_counts, out[1], out[0])
-    return torch.from_numpy(out), prefix
+    return torch.from_numpy(out), prefix, WallLayout(targets, rows, wf_counts, w_off[:-1] - prefix)
