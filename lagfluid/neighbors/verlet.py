@@ -124,11 +124,13 @@ class VerletNeighborList:
         return self.cutoff + self.skin
 
     def reset(self) -> None:
-        """Forget the candidate list (the next :meth:`update` searches again)."""
+        """Forget the candidate list (the next :meth:`update` searches again).
+
+        The boundary's index is kept: every rebuild checks it against the boundary (remade if they differ).
+        """
         self.candidates = None
         self._built_at = None
         self._static = None
-        self._boundary = None
 
     def needs_rebuild(self, pos: Tensor, n_fluid: int) -> bool:
         """True when a fluid particle has moved more than ``skin / 2`` since the last build.
