@@ -1011,6 +1011,13 @@ PLANTS = [
         "self._sorted_pos = np.ascontiguousarray(self._args[0])",
         "tests/test_pair_kernels.py::test_split_search_gives_the_candidates_of_brute_force_and_of_one_cell_list",
     ),
+    (
+        "split search's fluid rows transposed with the chunks in reverse order (sources not ascending)",
+        "lagfluid/neighbors/pair_kernels.py",
+        "cursor = np.cumsum(hist, axis=0) - hist + f_off[:-1]",
+        "cursor = np.cumsum(hist[::-1], axis=0)[::-1] - hist + f_off[:-1]",
+        "tests/test_pair_kernels.py::test_fluid_rows_come_sorted_from_the_transpose_whatever_the_chunks",
+    ),
 ]
 
 

@@ -296,3 +296,17 @@ def test_split_search_without_boundary_or_fluid_and_with_fluid_rows_not_first():
     got, _ = fast._search_compiled(pos[perm], ptype[perm] == 1, ptype[perm] == 2, 192)
     assert torch.equal(got, one_cell_list(fast, pos[perm], ptype[perm]))  # served by one cell list over all
     assert fast.boundary_builds == 0
+
+
+@pytest.mark.parametrize("chunks", [1, 3, 7])
+def test_fluid_rows_come_sorted_from_the_transpose_whatever_the_chunks(monkeypatch, chunks):
+    """The fluid-fluid rows are sorted by a transpose over ascending runs of rows, one run per thread."""
+    monkeypatch.setattr(pair_kernels, "numba_threads", lambda: chunks)
+    pos, ptype = floor_tank(torch.float32, jitter=3.0, seed=5)  # numbering unrelated to the cells
+    perm = torch.cat(
+        [torch.randperm(192, generator=torch.Generator().manual_seed(1)), torch.arange(192, 320)]
+    )
+    pos = pos[perm]
+    got, prefix = candidates(split_lists(), pos, ptype)
+    want, want_prefix = candidates(split_lists(backend="brute"), pos, ptype)
+    assert torch.equal(got, want) and prefix == want_prefix

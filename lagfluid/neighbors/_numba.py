@@ -244,8 +244,9 @@ def query_scan_sizes(qcell, cell_start, dims, reach, sizes):
 
 
 @njit(parallel=True, cache=True)
-def query_fill(qpos, qcell, visit, skip, spos, order, cell_start, dims, reach, bound2, slots, buf, counts):
-    """Query r's sources ``order[k]`` != skip[r] with d2 < bound2, sorted, into ``buf[slots[r]:]``.
+def query_fill(qpos, qcell, visit, skip, spos, order, cell_start, dims, reach, bound2, slots, buf, counts,
+               sort):  # fmt: skip
+    """Query r's sources ``order[k]`` != skip[r] with d2 < bound2 into ``buf[slots[r]:]``, sorted if ``sort``.
 
     Queries are visited in the order ``visit`` (their cell order: neighbouring queries read the same cells);
     ``spos``: the sources' positions in cell order (``spos[k]`` is source ``order[k]``), read contiguously.
@@ -267,7 +268,8 @@ def query_fill(qpos, qcell, visit, skip, spos, order, cell_start, dims, reach, b
                     if acc < bound2 and order[k] != skip[r]:
                         buf[k_out] = order[k]
                         k_out += 1
-        _sort_nearly_sorted(buf, slots[r], k_out)
+        if sort:
+            _sort_nearly_sorted(buf, slots[r], k_out)
         counts[r] = k_out - slots[r]
 
 
@@ -295,14 +297,41 @@ def near_wall_hop(wall_local, ptr, src, near, frontier, reached):
 
 
 @njit(parallel=True, cache=True)
-def fluid_rows(ff_slots, ff_buf, ff_counts, fb_slots, fb_buf, fb_counts, n_fluid, offsets, out_i, out_j):
-    """Fluid target i's row: its fluid sources then its boundary sources (local + n_fluid), both sorted."""
-    for i in prange(ff_slots.shape[0]):
-        o = offsets[i]
-        for k in range(ff_counts[i]):
-            out_i[o + k] = i
-            out_j[o + k] = ff_buf[ff_slots[i] + k]
-        o += ff_counts[i]
+def symmetric_histogram(slots, counts, buf, chunks, hist):
+    """``hist[c, i]``: how many rows j of chunk c (rows split into ``chunks`` ascending runs) hold i."""
+    n = slots.shape[0]
+    per = (n + chunks - 1) // chunks
+    for c in prange(chunks):
+        for j in range(c * per, min(n, (c + 1) * per)):
+            for k in range(slots[j], slots[j] + counts[j]):
+                hist[c, buf[k]] += 1
+
+
+@njit(parallel=True, cache=True)
+def symmetric_transpose(slots, counts, buf, chunks, cursor, out_i, out_j):
+    """The rows of a symmetric relation, each sorted, without a sort: j goes into row i for every i of row j.
+
+    Rows j are visited in ascending order (chunk c after chunk c - 1, each from ``cursor[c, i]``, where the
+    entries of row i from the chunks before end), so each row i receives its j ascending. Symmetric: i is in
+    row j exactly when j is in row i (the same squared distance, negated difference): row i gets its sources.
+    """
+    n = slots.shape[0]
+    per = (n + chunks - 1) // chunks
+    for c in prange(chunks):
+        for j in range(c * per, min(n, (c + 1) * per)):
+            for k in range(slots[j], slots[j] + counts[j]):
+                i = buf[k]
+                at = cursor[c, i]
+                out_i[at] = i
+                out_j[at] = j
+                cursor[c, i] = at + 1
+
+
+@njit(parallel=True, cache=True)
+def fluid_rows(fb_slots, fb_buf, fb_counts, n_fluid, starts, out_i, out_j):
+    """Fluid target i's boundary sources (local + n_fluid), sorted, from ``starts[i]`` (after its fluid)."""
+    for i in prange(fb_slots.shape[0]):
+        o = starts[i]
         for k in range(fb_counts[i]):
             out_i[o + k] = i
             out_j[o + k] = fb_buf[fb_slots[i] + k] + n_fluid

@@ -203,6 +203,13 @@ def _kernels() -> ModuleType:
     return kernels
 
 
+def numba_threads() -> int:
+    """The threads Numba's parallel loops use (as many as torch's, :func:`set_threads`)."""
+    import numba
+
+    return int(numba.get_num_threads())
+
+
 def _as_numpy(t: Tensor) -> np.ndarray:
     return t.detach().contiguous().numpy()
 
@@ -413,15 +420,16 @@ class CellList:
         return cell
 
     def query_rows(
-        self, qpos: np.ndarray, qcell: np.ndarray, visit: np.ndarray, skip: np.ndarray
+        self, qpos: np.ndarray, qcell: np.ndarray, visit: np.ndarray, skip: np.ndarray, sort: bool = True
     ) -> QueryRows:
-        """Each query's sources within the radius in this list, sorted, in one distance pass (no compaction).
+        """Each query's sources within the radius in this list, in one distance pass (no compaction).
 
         Args:
             qpos: (Q, D) query positions, this list's dtype.
             qcell: (Q, 4) their cells in this grid (:meth:`cells_of`, or this list's own cells).
             visit: (Q,) int64 the order the queries are visited in (any permutation; cell order reads best).
             skip: (Q,) int64 the particle of this list each query never pairs with (itself), or -1.
+            sort: each row's sources ascending (else in cell order).
         """
         kern = _kernels()
         pos, _, order, cell_start, dims, reach = self._args
@@ -432,7 +440,7 @@ class CellList:
         counts = np.zeros(qpos.shape[0], dtype=np.int64)
         kern.query_fill(
             qpos, qcell, visit, skip, self.sorted_pos, order, cell_start, dims, reach, self._bound2,
-            slots[:-1], buf, counts,
+            slots[:-1], buf, counts, sort,
         )  # fmt: skip
         return QueryRows(slots[:-1], buf, counts)
 
@@ -667,7 +675,8 @@ def verlet_candidates(
     if fcells is None:
         return None
     fpos, fcell, visit = fcells._args[0], fcells._args[1], fcells._args[2]  # visit: the fluid in cell order
-    ff = fcells.query_rows(fpos, fcell, visit, np.arange(nf, dtype=np.int64))
+    # unsorted: the fluid-fluid relation is symmetric, so its rows come sorted by a transpose (below)
+    ff = fcells.query_rows(fpos, fcell, visit, np.arange(nf, dtype=np.int64), sort=False)
     fcell_b = static.cells.cells_of(fpos.astype(np.float64))
     fb = static.cells.query_rows(fpos, fcell_b, visit, np.full(nf, -1, dtype=np.int64))
     from_fluid = kern.column_counts(fb.slots, fb.counts, fb.buf, nb)  # (B,) fluid sources per boundary row
@@ -695,7 +704,12 @@ def verlet_candidates(
     np.cumsum(w_sizes, out=w_off[1:])
     w_off[1:] += prefix
     out = np.empty((2, int(w_off[-1])), dtype=np.int64)
-    kern.fluid_rows(ff.slots, ff.buf, ff.counts, fb.slots, fb.buf, fb.counts, nf, f_off, out[1], out[0])
+    chunks = max(1, min(numba_threads(), nf))
+    hist = np.zeros((chunks, nf), dtype=np.int64)
+    kern.symmetric_histogram(ff.slots, ff.counts, ff.buf, chunks, hist)
+    cursor = np.cumsum(hist, axis=0) - hist + f_off[:-1]  # where chunk c's entries of row i start
+    kern.symmetric_transpose(ff.slots, ff.counts, ff.buf, chunks, cursor, out[1], out[0])
+    kern.fluid_rows(fb.slots, fb.buf, fb.counts, nf, f_off[:-1] + ff.counts, out[1], out[0])
     cursor = np.full(nb, -1, dtype=np.int64)
     cursor[targets] = w_off[:-1]
     kern.wall_rows_from_fluid(fb.slots, fb.buf, fb.counts, nf, cursor, out[1], out[0])
