@@ -1011,6 +1011,42 @@ PLANTS = [
         "return StepWindows(data_dir, split, steps=UNROLL, boundary_radius=crop)",
         "tests/test_dagger_cconv.py::test_cconvs_window_of_the_hybrid_is_its_state_the_frames_velocity_and_mps_two_steps",
     ),
+    # the Verlet list's split search: the boundary indexed once per scene (issue 37)
+    (
+        "Verlet list searches against a stale boundary index after the walls moved",
+        "lagfluid/neighbors/verlet.py",
+        "if static is None or not static.matches(pos, walls, n_fluid, self.list_radius):",
+        "if static is None:",
+        "tests/test_pair_kernels.py::test_static_boundary_is_indexed_once_and_again_when_the_walls_change",
+    ),
+    (
+        "split search keeps a pair at exactly the list radius",
+        "lagfluid/neighbors/_numba.py",
+        "if acc < bound2 and order[k] != skip[r]:",
+        "if acc <= bound2 and order[k] != skip[r]:",
+        "tests/test_pair_kernels.py::test_split_search_gives_the_candidates_of_brute_force_and_of_one_cell_list",
+    ),
+    (
+        "split search drops a fluid-wall pair (each fluid row's last boundary source)",
+        "lagfluid/neighbors/_numba.py",
+        "out_j[o + k] = fb_buf[fb_slots[i] + k] + n_fluid",
+        "out_j[o + k] = fb_buf[fb_slots[i] + max(k - 1, 0)] + n_fluid",
+        "tests/test_pair_kernels.py::test_split_search_gives_the_candidates_of_brute_force_and_of_one_cell_list",
+    ),
+    (
+        "split search reads source positions without the cell permutation",
+        "lagfluid/neighbors/pair_kernels.py",
+        "self._sorted_pos = np.ascontiguousarray(self._args[0][self._args[2]])",
+        "self._sorted_pos = np.ascontiguousarray(self._args[0])",
+        "tests/test_pair_kernels.py::test_split_search_gives_the_candidates_of_brute_force_and_of_one_cell_list",
+    ),
+    (
+        "split search's fluid rows transposed with the chunks in reverse order (sources not ascending)",
+        "lagfluid/neighbors/pair_kernels.py",
+        "cursor = np.cumsum(hist, axis=0) - hist + f_off[:-1]",
+        "cursor = np.cumsum(hist[::-1], axis=0)[::-1] - hist + f_off[:-1]",
+        "tests/test_pair_kernels.py::test_fluid_rows_come_sorted_from_the_transpose_whatever_the_chunks",
+    ),
 ]
 
 

@@ -48,5 +48,7 @@ def test_a_rebuild_profile_names_the_verlet_lists_parts(tmp_path):
     assert top["function"].startswith("update (verlet.py") and float(top["share"]) == 1.0
     assert float(top["calls_per_rebuild"]) == 1.0 and int(top["candidates"]) > 0
     names = [r["function"] for r in rows]
-    assert any(n.startswith("_search_with_cells") for n in names)  # the compiled cell search was profiled
+    assert any(n.startswith("verlet_candidates") for n in names)  # the compiled split search was profiled
+    # two queries a rebuild (fluid-fluid, fluid-boundary): the boundary's index is not remade by a reset
+    assert [float(r["calls_per_rebuild"]) for r in rows if r["function"].startswith("query_rows")] == [2.0]
     assert all(0 < float(r["share"]) <= 1 for r in rows)

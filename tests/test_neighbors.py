@@ -489,3 +489,38 @@ def test_kernel_adjacency_gradients():
     g2 = torch.autograd.grad(ref.square().sum(), (p, x))
     for a, b in zip(g1, g2, strict=True):
         assert torch.allclose(a, b, rtol=1e-10, atol=1e-12)
+
+
+@pytest.mark.parametrize("library", ["vesin", "warp"])
+def test_the_benchmarks_optional_libraries_find_our_pairs(library):
+    """vesin and warp-lang, timed beside our search by ``benchmarks.neighbors --verlet``, find the same pairs.
+
+    A jittered block (no pair within rounding of r, where float formulas may differ); skipped without them.
+    """
+    pytest.importorskip(library)
+    from benchmarks.neighbors import fluid_block, vesin_pairs, warp_pairs
+
+    pos = fluid_block(600, jitter=0.2, seed=3)
+    r = 2.1 * L0
+    got = (vesin_pairs if library == "vesin" else warp_pairs)(pos, r)
+    want = radius_graph(pos, r)
+    assert want.shape[1] > 20 * 600
+    assert torch.equal(got, want)
+
+
+def test_the_verlet_benchmark_checks_every_way_against_the_previous_search():
+    """``benchmarks.neighbors --verlet``'s rows on a small dam: every way finds the previous search's."""
+    pytest.importorskip("numba")
+    from benchmarks.neighbors import verlet_rows
+    from lagfluid.neighbors.verlet import VerletNeighborList
+    from lagfluid.scenes import build_scene
+
+    state = build_scene("dam", fluid_size=[6, 6, 8], tank_size=[15, 8])
+    nl = VerletNeighborList(2.1 * L0, 0.63 * L0)
+    rows = verlet_rows("small", "rest", state, nl, "fgn", 1, {"copy_bytes_per_s": 1e10})
+    by_way = {r["way"]: r for r in rows}
+    assert all(r["same_pairs"] for r in rows)
+    previous, present = by_way["previous search"], by_way["present search"]
+    assert previous["pairs"] == present["pairs"] == by_way["present, whole update"]["pairs"] > 0
+    assert present["scanned"] < previous["scanned"]  # the walls' rows are no longer searched
+    assert present["floor_write_ms"] == round(1e3 * 16 * present["pairs"] / 1e10, 2)

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from lagfluid.neighbors import edge_vectors, pair_kernels
-from lagfluid.neighbors.verlet import VerletNeighborList
+from lagfluid.neighbors.verlet import VerletNeighborList, _WallRows
 from lagfluid.scenes import build_scene
 
 pytestmark = pytest.mark.skipif(not pair_kernels.available(), reason="numba not installed")
@@ -188,3 +188,125 @@ def test_the_first_compiled_search_keeps_torchs_thread_count():
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.split()[-1] == "1"
+
+
+# ---------------------------------------------------------------- the Verlet list's split search (issue 37)
+L = 0.25  # a lattice spacing that binary floats hold exactly: lattice distances like 2 L are exact
+
+
+def floor_tank(dtype, jitter=0.0, seed=0):
+    """Fluid on an integer lattice above a floor of walls (z = -1 L) and dummies (z = -2 L), fluid rows first.
+
+    Without jitter many pairs sit at exactly 2 L, the list radius of :func:`split_lists` below.
+    """
+    gen = torch.Generator().manual_seed(seed)
+    grid = torch.stack(torch.meshgrid(*[torch.arange(-3.0, 5.0)] * 2, indexing="ij"), -1).reshape(-1, 2)
+    fluid = torch.cat([torch.cat([grid, torch.full((64, 1), z)], 1) for z in (0.0, 1.0, 2.0)])
+    floor = torch.cat([torch.cat([grid, torch.full((64, 1), z)], 1) for z in (-1.0, -2.0)])
+    fluid = fluid + jitter * (torch.rand(fluid.shape, generator=gen, dtype=torch.float64) - 0.5)
+    pos = (torch.cat([fluid, floor]) * L).to(dtype)
+    ptype = torch.cat([torch.full((192,), 1), torch.full((64,), 2), torch.full((64,), 3)])
+    return pos, ptype
+
+
+def split_lists(wall_hops=2, backend="auto"):
+    return VerletNeighborList(1.5 * L, 0.5 * L, backend=backend, wall_hops=wall_hops)  # list radius 2 L
+
+
+def candidates(nl, pos, ptype):
+    nl.reset()
+    nl.update(pos, ptype)
+    return nl.candidates, nl._fluid_prefix
+
+
+def one_cell_list(nl, pos, ptype):
+    """The candidates as the previous compiled search found them: one cell list over every particle."""
+    fluid, walls = ptype == 1, ptype == 2
+    cells = pair_kernels.CellList.build(pos, nl.list_radius)
+    return nl._search_with_cells(cells, fluid, walls)
+
+
+def states(dtype):
+    yield "lattice", *floor_tank(dtype)  # pairs at exactly the list radius
+    yield "jittered", *floor_tank(dtype, jitter=0.3)
+    yield "random", *floor_tank(dtype, jitter=3.0, seed=1)  # fluid scattered, some in and below the floor
+    dam = build_scene("dam", fluid_size=[6, 6, 8], tank_size=[15, 8], dtype=dtype)
+    pos = dam.pos.clone()
+    pos[: dam.n_fluid] += (
+        0.3 * L * torch.randn(dam.n_fluid, 3, generator=torch.Generator().manual_seed(2)).to(dtype)
+    )
+    yield "dam", pos, dam.ptype
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("wall_hops", [1, 2, None])
+def test_split_search_gives_the_candidates_of_brute_force_and_of_one_cell_list(dtype, wall_hops):
+    for name, pos, ptype in states(dtype):
+        fast = split_lists(wall_hops)
+        got, prefix = candidates(fast, pos, ptype)
+        assert fast.boundary_builds == 1, name  # the split search served (not the one-cell-list fallback)
+        want, want_prefix = candidates(split_lists(wall_hops, backend="brute"), pos, ptype)
+        assert torch.equal(got, want) and prefix == want_prefix, name
+        assert torch.equal(got, one_cell_list(fast, pos, ptype)), name
+        # the wall rows' index from the boundary's static hops == filtering the boundary-source pairs again
+        want_rows = _WallRows.build(pos, got[:, prefix:], int((ptype == 1).sum()), fast.cutoff)
+        for field in ("dyn", "dyn_edges", "dyn_dst", "hop_src", "hop_dst", "boundary_at"):
+            assert torch.equal(getattr(fast._static, field), getattr(want_rows, field)), (name, field)
+        assert fast._static.closest_static == want_rows.closest_static, name
+    # the lattice has pairs at exactly the list radius: none of them is a candidate (the cut is strict)
+    pos, ptype = floor_tank(dtype)
+    got, _ = candidates(split_lists(wall_hops), pos, ptype)
+    d2 = ((pos[got[0]] - pos[got[1]]).double() ** 2).sum(1)
+    assert d2.max() < (2 * L) ** 2
+    assert ((pos[:, None] - pos[None]).double().pow(2).sum(-1) == (2 * L) ** 2).any()
+
+
+def test_static_boundary_is_indexed_once_and_again_when_the_walls_change():
+    pos, ptype = floor_tank(torch.float64, jitter=0.3)
+    fast, brute = split_lists(), split_lists(backend="brute")
+    gen = torch.Generator().manual_seed(3)
+    for _ in range(3):  # rebuilds as the fluid moves: the boundary's index is reused
+        pos[:192] += 0.6 * L * torch.rand(192, 3, generator=gen, dtype=pos.dtype)
+        fast.update(pos, ptype)
+        brute.update(pos, ptype)
+        assert torch.equal(fast.candidates, brute.candidates)
+    assert fast.builds == 3 and fast.boundary_builds == 1
+    moved = pos.clone()
+    moved[192:256, 2] += 0.5 * L  # the walls move up (a new scene): the cached walls are stale
+    fast.update(moved, ptype)
+    brute.update(moved, ptype)
+    assert fast.boundary_builds == 2 and torch.equal(fast.candidates, brute.candidates)
+    retyped = ptype.clone()
+    retyped[200:210] = 3  # ten walls become dummies, at the same positions: no longer targets
+    fast.reset()
+    brute.reset()
+    fast.update(moved, retyped)
+    brute.update(moved, retyped)
+    assert fast.boundary_builds == 3 and torch.equal(fast.candidates, brute.candidates)
+
+
+def test_split_search_without_boundary_or_fluid_and_with_fluid_rows_not_first():
+    pos, ptype = floor_tank(torch.float32, jitter=0.3)
+    for p, t in ((pos[:192], ptype[:192]), (pos[192:], ptype[192:])):
+        got, prefix = candidates(split_lists(None), p, t)
+        want, want_prefix = candidates(split_lists(None, backend="brute"), p, t)
+        assert torch.equal(got, want) and prefix == want_prefix
+    perm = torch.randperm(320, generator=torch.Generator().manual_seed(0))  # fluid rows mixed in
+    fast = split_lists()
+    got, _ = fast._search_compiled(pos[perm], ptype[perm] == 1, ptype[perm] == 2, 192)
+    assert torch.equal(got, one_cell_list(fast, pos[perm], ptype[perm]))  # served by one cell list over all
+    assert fast.boundary_builds == 0
+
+
+@pytest.mark.parametrize("chunks", [1, 3, 7])
+def test_fluid_rows_come_sorted_from_the_transpose_whatever_the_chunks(monkeypatch, chunks):
+    """The fluid-fluid rows are sorted by a transpose over ascending runs of rows, one run per thread."""
+    monkeypatch.setattr(pair_kernels, "numba_threads", lambda: chunks)
+    pos, ptype = floor_tank(torch.float32, jitter=3.0, seed=5)  # numbering unrelated to the cells
+    perm = torch.cat(
+        [torch.randperm(192, generator=torch.Generator().manual_seed(1)), torch.arange(192, 320)]
+    )
+    pos = pos[perm]
+    got, prefix = candidates(split_lists(), pos, ptype)
+    want, want_prefix = candidates(split_lists(backend="brute"), pos, ptype)
+    assert torch.equal(got, want) and prefix == want_prefix

@@ -212,3 +212,160 @@ def fill_induced(src, dst, keep, local, offsets, out_src, out_dst, out_pos):
                 out_dst[k] = local[dst[e]]
                 out_pos[k] = e
                 k += 1
+
+
+# ------------------------------------------------------------------------- the Verlet list's split search
+# Queries from one particle set (the fluid) into the cell list of another (the fluid's own, or the static
+# boundary's), the sources read from positions stored in cell order (contiguous), then the Verlet list's
+# candidate rows assembled from the parts (fluid-fluid, fluid-boundary, its transpose, the static rows).
+
+
+@njit(cache=True, inline="always")
+def _query_run(qcell, r, cell_start, dims, reach, cz, cy):
+    """[start, stop) in cell order of cells (cz, cy, x within ``reach`` of query r); empty off the grid."""
+    x_lo = max(qcell[r, 3] - reach, 0)
+    x_hi = min(qcell[r, 3] + reach + 1, dims[3])
+    if x_lo >= x_hi:
+        return 0, 0
+    row = ((qcell[r, 0] * dims[1] + cz) * dims[2] + cy) * dims[3]
+    return cell_start[row + x_lo], cell_start[row + x_hi]
+
+
+@njit(parallel=True, cache=True)
+def query_scan_sizes(qcell, cell_start, dims, reach, sizes):
+    """``sizes[r + 1]``: the particles in the cells scanned around query r (qcell: (Q, 4) in the grid)."""
+    for r in prange(qcell.shape[0]):
+        total = 0
+        for cz in range(max(qcell[r, 1] - reach, 0), min(qcell[r, 1] + reach + 1, dims[1])):
+            for cy in range(max(qcell[r, 2] - reach, 0), min(qcell[r, 2] + reach + 1, dims[2])):
+                start, stop = _query_run(qcell, r, cell_start, dims, reach, cz, cy)
+                total += stop - start
+        sizes[r + 1] = total
+
+
+@njit(parallel=True, cache=True)
+def query_fill(qpos, qcell, visit, skip, spos, order, cell_start, dims, reach, bound2, slots, buf, counts,
+               sort):  # fmt: skip
+    """Query r's sources ``order[k]`` != skip[r] with d2 < bound2 into ``buf[slots[r]:]``, sorted if ``sort``.
+
+    Queries are visited in the order ``visit`` (their cell order: neighbouring queries read the same cells);
+    ``spos``: the sources' positions in cell order (``spos[k]`` is source ``order[k]``), read contiguously.
+    The distance is ``spos[k] - qpos[r]`` squared and summed as ``_squared_distance`` (source minus target).
+    """
+    dim = qpos.shape[1]
+    for v in prange(visit.shape[0]):
+        r = visit[v]
+        k_out = slots[r]
+        for cz in range(max(qcell[r, 1] - reach, 0), min(qcell[r, 1] + reach + 1, dims[1])):
+            for cy in range(max(qcell[r, 2] - reach, 0), min(qcell[r, 2] + reach + 1, dims[2])):
+                start, stop = _query_run(qcell, r, cell_start, dims, reach, cz, cy)
+                for k in range(start, stop):
+                    diff = spos[k, 0] - qpos[r, 0]
+                    acc = diff * diff
+                    for d in range(1, dim):
+                        diff = spos[k, d] - qpos[r, d]
+                        acc = acc + diff * diff
+                    if acc < bound2 and order[k] != skip[r]:
+                        buf[k_out] = order[k]
+                        k_out += 1
+        if sort:
+            _sort_nearly_sorted(buf, slots[r], k_out)
+        counts[r] = k_out - slots[r]
+
+
+@njit(cache=True)
+def column_counts(slots, counts, buf, size):
+    """How often each value 0..size-1 occurs among the query rows ``buf[slots[r]:slots[r] + counts[r]]``."""
+    out = np.zeros(size, dtype=np.int64)
+    for r in range(slots.shape[0]):
+        for k in range(slots[r], slots[r] + counts[r]):
+            out[buf[k]] += 1
+    return out
+
+
+@njit(parallel=True, cache=True)
+def near_wall_hop(wall_local, ptr, src, near, frontier, reached):
+    """``reached[b]``: wall b (not yet ``near``) has a ``frontier`` particle among its static sources."""
+    for w in prange(wall_local.shape[0]):
+        b = wall_local[w]
+        if near[b]:
+            continue
+        for k in range(ptr[w], ptr[w + 1]):
+            if frontier[src[k]]:
+                reached[b] = True
+                break
+
+
+@njit(parallel=True, cache=True)
+def symmetric_histogram(slots, counts, buf, chunks, hist):
+    """``hist[c, i]``: how many rows j of chunk c (rows split into ``chunks`` ascending runs) hold i."""
+    n = slots.shape[0]
+    per = (n + chunks - 1) // chunks
+    for c in prange(chunks):
+        for j in range(c * per, min(n, (c + 1) * per)):
+            for k in range(slots[j], slots[j] + counts[j]):
+                hist[c, buf[k]] += 1
+
+
+@njit(parallel=True, cache=True)
+def symmetric_transpose(slots, counts, buf, chunks, cursor, out_i, out_j):
+    """The rows of a symmetric relation, each sorted, without a sort: j goes into row i for every i of row j.
+
+    Rows j are visited in ascending order (chunk c after chunk c - 1, each from ``cursor[c, i]``, where the
+    entries of row i from the chunks before end), so each row i receives its j ascending. Symmetric: i is in
+    row j exactly when j is in row i (the same squared distance, negated difference): row i gets its sources.
+    """
+    n = slots.shape[0]
+    per = (n + chunks - 1) // chunks
+    for c in prange(chunks):
+        for j in range(c * per, min(n, (c + 1) * per)):
+            for k in range(slots[j], slots[j] + counts[j]):
+                i = buf[k]
+                at = cursor[c, i]
+                out_i[at] = i
+                out_j[at] = j
+                cursor[c, i] = at + 1
+
+
+@njit(parallel=True, cache=True)
+def fluid_rows(fb_slots, fb_buf, fb_counts, n_fluid, starts, out_i, out_j):
+    """Fluid target i's boundary sources (local + n_fluid), sorted, from ``starts[i]`` (after its fluid)."""
+    for i in prange(fb_slots.shape[0]):
+        o = starts[i]
+        for k in range(fb_counts[i]):
+            out_i[o + k] = i
+            out_j[o + k] = fb_buf[fb_slots[i] + k] + n_fluid
+
+
+@njit(cache=True)
+def wall_rows_from_fluid(fb_slots, fb_buf, fb_counts, n_fluid, cursor, out_i, out_j):
+    """The fluid sources of each wall target, ascending: the fluid-boundary rows transposed, in fluid order.
+
+    ``cursor[b]``: where wall target b's row is written next (-1: b is not a target); advanced in place.
+    """
+    for i in range(fb_slots.shape[0]):
+        for k in range(fb_slots[i], fb_slots[i] + fb_counts[i]):
+            b = fb_buf[k]
+            c = cursor[b]
+            if c >= 0:
+                out_i[c] = b + n_fluid
+                out_j[c] = i
+                cursor[b] = c + 1
+
+
+@njit(parallel=True, cache=True)
+def wall_rows_static(targets, rows, ptr, src, n_fluid, starts, out_i, out_j):
+    """Wall target ``targets[t]`` (local)'s static boundary sources (row ``rows[t]``) from ``starts[t]``."""
+    for t in prange(targets.shape[0]):
+        w, o, b = rows[t], starts[t], targets[t] + n_fluid
+        for k in range(ptr[w + 1] - ptr[w]):
+            out_i[o + k] = b
+            out_j[o + k] = src[ptr[w] + k] + n_fluid
+
+
+@njit(parallel=True, cache=True)
+def compact_rows(slots, counts, buf, ptr, out):
+    """Rows ``buf[slots[r]:slots[r] + counts[r]]`` packed into ``out[ptr[r]:ptr[r + 1]]``."""
+    for r in prange(slots.shape[0]):
+        for k in range(counts[r]):
+            out[ptr[r] + k] = buf[slots[r] + k]

@@ -30,6 +30,7 @@ from __future__ import annotations
 import functools
 import importlib
 import logging
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from types import ModuleType
@@ -200,6 +201,13 @@ def _kernels() -> ModuleType:
         raise RuntimeError("the compiled pair kernels need numba: pip install numba")
     set_threads()
     return kernels
+
+
+def numba_threads() -> int:
+    """The threads Numba's parallel loops use (as many as torch's, :func:`set_threads`)."""
+    import numba
+
+    return int(numba.get_num_threads())
 
 
 def _as_numpy(t: Tensor) -> np.ndarray:
@@ -390,9 +398,51 @@ class CellList:
     """
 
     def __init__(self, pos: np.ndarray, cell: np.ndarray, order: np.ndarray, cell_start: np.ndarray,
-                 dims: np.ndarray, bound2: np.generic) -> None:  # fmt: skip
+                 dims: np.ndarray, bound2: np.generic, lo: np.ndarray, edge: float) -> None:  # fmt: skip
         self._args = (pos, cell, order, cell_start, dims, _CELLS_PER_RADIUS)
         self._bound2 = bound2
+        self.lo, self.edge = lo, edge  # the grid: particle x is in cell floor((x - lo) / edge)
+        self._sorted_pos: np.ndarray | None = None
+
+    @property
+    def sorted_pos(self) -> np.ndarray:
+        """(N, D) the positions in cell order (row k: particle ``order[k]``), made once: contiguous reads."""
+        if self._sorted_pos is None:
+            self._sorted_pos = np.ascontiguousarray(self._args[0][self._args[2]])
+        return self._sorted_pos
+
+    def cells_of(self, coords: np.ndarray) -> np.ndarray:
+        """(Q, 4) int64 cells (graph 0) of the (Q, D) float64 points ``coords`` in this grid (or off it)."""
+        cell = np.zeros((coords.shape[0], 4), dtype=np.int64)
+        d = coords.shape[1]
+        for axis in range(d):
+            cell[:, 4 - d + axis] = np.floor((coords[:, axis] - self.lo[axis]) / self.edge).astype(np.int64)
+        return cell
+
+    def query_rows(
+        self, qpos: np.ndarray, qcell: np.ndarray, visit: np.ndarray, skip: np.ndarray, sort: bool = True
+    ) -> QueryRows:
+        """Each query's sources within the radius in this list, in one distance pass (no compaction).
+
+        Args:
+            qpos: (Q, D) query positions, this list's dtype.
+            qcell: (Q, 4) their cells in this grid (:meth:`cells_of`, or this list's own cells).
+            visit: (Q,) int64 the order the queries are visited in (any permutation; cell order reads best).
+            skip: (Q,) int64 the particle of this list each query never pairs with (itself), or -1.
+            sort: each row's sources ascending (else in cell order).
+        """
+        kern = _kernels()
+        pos, _, order, cell_start, dims, reach = self._args
+        sizes = np.zeros(qpos.shape[0] + 1, dtype=np.int64)
+        kern.query_scan_sizes(qcell, cell_start, dims, reach, sizes)
+        slots = np.cumsum(sizes)
+        buf = np.empty(int(slots[-1]), dtype=np.int32 if pos.shape[0] < 2**31 else np.int64)
+        counts = np.zeros(qpos.shape[0], dtype=np.int64)
+        kern.query_fill(
+            qpos, qcell, visit, skip, self.sorted_pos, order, cell_start, dims, reach, self._bound2,
+            slots[:-1], buf, counts, sort,
+        )  # fmt: skip
+        return QueryRows(slots[:-1], buf, counts)
 
     @classmethod
     def build(cls, pos: Tensor, radius: float, batch: Tensor | None = None) -> CellList | None:
@@ -425,7 +475,8 @@ class CellList:
         order = np.argsort(keys, kind="stable")
         cell_start = np.zeros(int(total) + 1, dtype=np.int64)
         np.cumsum(np.bincount(keys, minlength=int(total)), out=cell_start[1:])
-        return cls(p, cell, order, cell_start, dims, p.dtype.type(_squared_bound(float(radius), pos.dtype)))
+        bound2 = p.dtype.type(_squared_bound(float(radius), pos.dtype))
+        return cls(p, cell, order, cell_start, dims, bound2, lo, edge)
 
     def pairs(self, receivers: Tensor) -> Tensor:
         """(2, E) int64 edge index [j; i]: every j != i (same graph) within the radius of each receiver i.
@@ -479,3 +530,188 @@ def cell_search(pos: Tensor, radius: float, batch: Tensor | None, receivers: Ten
     """
     cells = CellList.build(pos, radius, batch)
     return None if cells is None else cells.pairs(receivers)
+
+
+# ------------------------------------------------------------------------- the Verlet list's split search
+@dataclass(frozen=True)
+class QueryRows:
+    """Each query's sources, sorted, uncompacted: query r's are ``buf[slots[r]:slots[r] + counts[r]]``."""
+
+    slots: np.ndarray
+    buf: np.ndarray
+    counts: np.ndarray
+
+
+@dataclass
+class StaticBoundary:
+    """The boundary rows (N - n_fluid of them, after the fluid) indexed once per scene: walls never move.
+
+    Holds the boundary's cell list and every wall's candidate boundary sources (the wall-wall and
+    wall-dummy pairs within the radius), as CSR rows over the walls, so a rebuild of the Verlet list only
+    searches the fluid (:func:`verlet_candidates`). Valid only for the very boundary it was built from:
+    :meth:`matches` compares positions and wall flags exactly (one read of the boundary per rebuild).
+
+    Attributes:
+        n_fluid: the rows before the boundary.
+        boundary: (B, D) the boundary positions it was built from; walls: (B,) bool, which are walls.
+        radius: the search radius, m.
+        cells: the boundary's cell list (local indices 0..B-1).
+        wall_local: (W,) int64 local index of each wall, ascending; wall_row: (B,) its row, -1 for non-walls.
+        ptr, src: (W + 1,) int64 and (E_wb,) the walls' boundary sources (local), sorted, as CSR rows.
+    """
+
+    n_fluid: int
+    boundary: np.ndarray
+    walls: np.ndarray
+    radius: float
+    cells: CellList
+    wall_local: np.ndarray
+    wall_row: np.ndarray
+    ptr: np.ndarray
+    src: np.ndarray
+    _hops: tuple[float, np.ndarray, np.ndarray, np.ndarray] | None = None
+
+    def hop_rows(self, cutoff: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The walls' static sources closer than ``cutoff`` (the hops between walls), made once per cutoff.
+
+        Returns:
+            ptr (W + 1,) int64 and src (local, int64) as CSR rows over the walls, in the rows' order, and
+            (W,) float64 each row's shortest such distance (inf for none), as the compiled filter computes it.
+        """
+        if self._hops is None or self._hops[0] != cutoff:
+            counts = np.diff(self.ptr)
+            edges = np.stack([self.src.astype(np.int64), np.repeat(self.wall_local, counts)])
+            kept, _, dist = pairs_within(torch.from_numpy(self.boundary), [torch.from_numpy(edges)], cutoff)
+            rows = torch.from_numpy(self.wall_row)[kept[1]]
+            ptr = np.zeros(self.ptr.shape[0], dtype=np.int64)
+            np.cumsum(np.bincount(rows.numpy(), minlength=ptr.shape[0] - 1), out=ptr[1:])
+            closest = torch.full((ptr.shape[0] - 1,), math.inf, dtype=torch.float64)
+            closest.scatter_reduce_(0, rows, dist.double(), "amin")
+            self._hops = (cutoff, ptr, kept[0].numpy(), closest.numpy())
+        return self._hops[1], self._hops[2], self._hops[3]
+
+    @classmethod
+    def build(cls, pos: Tensor, walls: Tensor, n_fluid: int, radius: float) -> StaticBoundary | None:
+        """Index the boundary rows ``pos[n_fluid:]`` (N, D) with wall flags ``walls[n_fluid:]`` (N,) bool.
+
+        None when the boundary's box holds too many cells for a dense cell table (then search another way).
+        """
+        boundary = _as_numpy(pos[n_fluid:]).copy()
+        is_wall = _as_numpy(walls[n_fluid:]).copy()
+        cells = CellList.build(torch.from_numpy(boundary), radius)
+        if cells is None:
+            return None
+        wall_local = np.flatnonzero(is_wall).astype(np.int64)
+        wall_row = np.full(boundary.shape[0], -1, dtype=np.int64)
+        wall_row[wall_local] = np.arange(wall_local.shape[0])
+        own = cells._args[1]
+        visit = np.arange(wall_local.shape[0], dtype=np.int64)
+        wall_pos = np.ascontiguousarray(boundary[wall_local])
+        rows = cells.query_rows(wall_pos, own[wall_local], visit, wall_local)
+        ptr = np.zeros(wall_local.shape[0] + 1, dtype=np.int64)
+        np.cumsum(rows.counts, out=ptr[1:])
+        src = np.empty(int(ptr[-1]), dtype=rows.buf.dtype)
+        _kernels().compact_rows(rows.slots, rows.counts, rows.buf, ptr, src)
+        return cls(n_fluid, boundary, is_wall, float(radius), cells, wall_local, wall_row, ptr, src)
+
+    def matches(self, pos: Tensor, walls: Tensor, n_fluid: int, radius: float) -> bool:
+        """True when ``pos[n_fluid:]`` and ``walls[n_fluid:]`` are exactly this boundary, at this radius."""
+        if n_fluid != self.n_fluid or radius != self.radius:
+            return False
+        if pos.shape[0] - n_fluid != self.boundary.shape[0]:
+            return False
+        if _as_numpy(pos[:1]).dtype != self.boundary.dtype:
+            return False
+        same_pos = np.array_equal(_as_numpy(pos[n_fluid:]), self.boundary)
+        return bool(same_pos and np.array_equal(_as_numpy(walls[n_fluid:]), self.walls))
+
+
+@dataclass(frozen=True)
+class WallLayout:
+    """Where the wall rows of :func:`verlet_candidates` lie in its candidates after the fluid rows.
+
+    Attributes:
+        targets: (T,) int64 the wall targets (local boundary indices, ascending); rows: their static rows.
+        from_fluid: (T,) int64 how many fluid sources each has (the first pairs of its row).
+        starts: (T,) int64 where each row starts, counted from the first wall row.
+    """
+
+    targets: np.ndarray
+    rows: np.ndarray
+    from_fluid: np.ndarray
+    starts: np.ndarray
+
+    def dynamic(self) -> np.ndarray:
+        """(E_d,) int64 where (from the first wall row) the pairs with a fluid source lie, ascending."""
+        return _ranges(self.starts, self.from_fluid)
+
+
+def _ranges(starts: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """``concatenate([arange(s, s + c) for s, c in zip(starts, counts)])`` without a Python loop."""
+    total = int(counts.sum())
+    shift = np.repeat(starts - (np.cumsum(counts) - counts), counts)
+    return shift + np.arange(total, dtype=np.int64)
+
+
+def verlet_candidates(
+    pos: Tensor, static: StaticBoundary, wall_hops: int | None
+) -> tuple[Tensor, int, WallLayout] | None:
+    """The Verlet list's candidates (2, E) at ``pos`` (N, D), searching only the fluid (rows < n_fluid).
+
+    The same pairs in the same order as one cell list over every particle with receivers the fluid and the
+    walls within ``wall_hops`` hops of it (``VerletNeighborList._search_with_cells``): rows by target, the
+    fluid first, each row's sources ascending. Each fluid row is its fluid sources (a search of the fluid's
+    cell list) then its boundary sources (a search of the static boundary's); a wall row is its fluid sources
+    (those rows transposed) then its static boundary sources (``static``). The cut is the same squared bound,
+    the distance the same operations with the difference negated (its square is the same number).
+
+    Returns:
+        (candidates, how many of them are pairs into the fluid, where the wall rows lie), or None when the
+        fluid's box holds too many cells for a dense cell table.
+    """
+    kern = _kernels()
+    nf, nb = static.n_fluid, static.boundary.shape[0]
+    fcells = CellList.build(pos[:nf], static.radius)
+    if fcells is None:
+        return None
+    fpos, fcell, visit = fcells._args[0], fcells._args[1], fcells._args[2]  # visit: the fluid in cell order
+    # unsorted: the fluid-fluid relation is symmetric, so its rows come sorted by a transpose (below)
+    ff = fcells.query_rows(fpos, fcell, visit, np.arange(nf, dtype=np.int64), sort=False)
+    fcell_b = static.cells.cells_of(fpos.astype(np.float64))
+    fb = static.cells.query_rows(fpos, fcell_b, visit, np.full(nf, -1, dtype=np.int64))
+    from_fluid = kern.column_counts(fb.slots, fb.counts, fb.buf, nb)  # (B,) fluid sources per boundary row
+    if wall_hops is None:
+        near = static.walls.copy()
+    else:  # walls with fluid within the radius, then walls within the radius of those (static rows)
+        near = (from_fluid > 0) & static.walls
+        frontier = near.copy()
+        for _ in range(wall_hops - 1):
+            if not frontier.any():
+                break
+            reached = np.zeros(nb, dtype=np.bool_)
+            kern.near_wall_hop(static.wall_local, static.ptr, static.src, near, frontier, reached)
+            frontier = reached
+            near |= frontier
+    targets = np.flatnonzero(near).astype(np.int64)  # local boundary indices, ascending
+    rows = static.wall_row[targets]
+    wf_counts = from_fluid[targets]
+    w_sizes = wf_counts + (static.ptr[rows + 1] - static.ptr[rows])
+    f_off = np.zeros(nf + 1, dtype=np.int64)
+    np.cumsum(ff.counts + fb.counts, out=f_off[1:])
+    prefix = int(f_off[-1])
+    w_off = np.empty(targets.shape[0] + 1, dtype=np.int64)
+    w_off[0] = prefix
+    np.cumsum(w_sizes, out=w_off[1:])
+    w_off[1:] += prefix
+    out = np.empty((2, int(w_off[-1])), dtype=np.int64)
+    chunks = max(1, min(numba_threads(), nf))
+    hist = np.zeros((chunks, nf), dtype=np.int64)
+    kern.symmetric_histogram(ff.slots, ff.counts, ff.buf, chunks, hist)
+    cursor = np.cumsum(hist, axis=0) - hist + f_off[:-1]  # where chunk c's entries of row i start
+    kern.symmetric_transpose(ff.slots, ff.counts, ff.buf, chunks, cursor, out[1], out[0])
+    kern.fluid_rows(fb.slots, fb.buf, fb.counts, nf, f_off[:-1] + ff.counts, out[1], out[0])
+    cursor = np.full(nb, -1, dtype=np.int64)
+    cursor[targets] = w_off[:-1]
+    kern.wall_rows_from_fluid(fb.slots, fb.buf, fb.counts, nf, cursor, out[1], out[0])
+    kern.wall_rows_static(targets, rows, static.ptr, static.src, nf, w_off[:-1] + wf_counts, out[1], out[0])
+    return torch.from_numpy(out), prefix, WallLayout(targets, rows, wf_counts, w_off[:-1] - prefix)

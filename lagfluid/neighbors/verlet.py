@@ -25,6 +25,7 @@ import logging
 import math
 from dataclasses import dataclass, field
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -112,7 +113,10 @@ class VerletNeighborList:
         self._built_at: Tensor | None = None
         self._static: _WallRows | None = None
         self._fluid_rows: tuple[Tensor, int, int] | None = None  # (ptype, its _version, its FLUID count)
+        self._boundary: pair_kernels.StaticBoundary | None = None  # the boundary's index (compiled search)
+        self._layout: pair_kernels.WallLayout | None = None  # where the split search put the wall rows
         self.builds = 0
+        self.boundary_builds = 0  # how often the static boundary was indexed (once per scene)
 
     @property
     def list_radius(self) -> float:
@@ -120,7 +124,10 @@ class VerletNeighborList:
         return self.cutoff + self.skin
 
     def reset(self) -> None:
-        """Forget the candidate list (the next :meth:`update` searches again)."""
+        """Forget the candidate list (the next :meth:`update` searches again).
+
+        The boundary's index is kept: every rebuild checks it against the boundary (remade if they differ).
+        """
         self.candidates = None
         self._built_at = None
         self._static = None
@@ -166,15 +173,37 @@ class VerletNeighborList:
         walls = ptype == ParticleType.WALL
         # the compiled cell list serves the backends "auto" and "numba"; the others search by name
         search = backend_for("verlet_search", pos, compiled=self.backend in ("auto", "numba"))
+        self._layout = None  # set by the split search: where its wall rows lie
         self.candidates, self._fluid_prefix = search(self, pos, fluid, walls, n_fluid)
         self._built_at = pos[:n_fluid].clone()
-        self._static = _WallRows.build(pos, self.candidates[:, self._fluid_prefix :], n_fluid, self.cutoff)
+        into_walls = self.candidates[:, self._fluid_prefix :]
+        if self._layout is not None:  # the static parts of the wall rows are known from the boundary's index
+            self._static = _WallRows.from_split(pos, into_walls, self._boundary, self._layout, self.cutoff)
+        else:
+            self._static = _WallRows.build(pos, into_walls, n_fluid, self.cutoff)
         self.builds += 1
         log.debug("neighbour list rebuilt: %d candidate pairs", self.candidates.shape[1])
         return True
 
     def _search_compiled(self, pos: Tensor, fluid: Tensor, walls: Tensor, n_fluid: int) -> tuple[Tensor, int]:
-        """:meth:`_search` from one compiled cell list (the torch body where the box is too wide for one)."""
+        """:meth:`_search` by compiled cell lists (the torch body where the box is too wide for one).
+
+        The boundary (rows from ``n_fluid``, static) is indexed once per scene (:class:`StaticBoundary`,
+        rebuilt whenever its positions or wall flags differ from the cached ones), so a rebuild searches
+        only the fluid (:func:`pair_kernels.verlet_candidates`); one cell list over every particle where the
+        fluid rows are not first or the fluid's box is too wide.
+        """
+        if bool(fluid[:n_fluid].all()):  # the fluid is the first n_fluid rows (the split search's premise)
+            static = self._boundary
+            if static is None or not static.matches(pos, walls, n_fluid, self.list_radius):
+                static = pair_kernels.StaticBoundary.build(pos, walls, n_fluid, self.list_radius)
+                self._boundary = static
+                self.boundary_builds += 1
+            if static is not None:
+                found = pair_kernels.verlet_candidates(pos, static, self.wall_hops)
+                if found is not None:
+                    candidates, prefix, self._layout = found
+                    return candidates, prefix
         cells = pair_kernels.CellList.build(pos, self.list_radius)
         if cells is None:  # far-flung particles: too many cells for the dense cell table
             return self._search(pos, fluid, walls, n_fluid)
@@ -182,7 +211,9 @@ class VerletNeighborList:
         return candidates, int(torch.searchsorted(candidates[1], torch.tensor(n_fluid)))
 
     def _search_with_cells(self, cells: pair_kernels.CellList, fluid: Tensor, walls: Tensor) -> Tensor:
-        """The candidates (2, E) from one compiled cell list (what :meth:`_search` finds, in one pass).
+        """The candidates (2, E) from one compiled cell list over every particle (what :meth:`_search` finds).
+
+        The compiled search where the split one (:func:`pair_kernels.verlet_candidates`) does not apply.
 
         The walls within ``wall_hops`` hops are found by any-neighbour queries over the walls, then the fluid
         and those walls are searched together (fluid rows first, so the edges come sorted by target exactly
@@ -421,6 +452,42 @@ class _WallRows:
             hop_pairs[1],
             pos[n_fluid:].clone(),
             float(hop_dist.min()) if hop_dist.numel() else math.inf,
+        )
+
+    @classmethod
+    def from_split(
+        cls,
+        pos: Tensor,
+        candidates: Tensor,
+        boundary: pair_kernels.StaticBoundary,
+        layout: pair_kernels.WallLayout,
+        cutoff: float,
+    ) -> _WallRows:
+        """:meth:`build` for the wall rows of the split search: the hops come from the boundary's index.
+
+        The same fields as :meth:`build` finds by filtering the boundary-source pairs at every rebuild: those
+        pairs are static, so their hops (closer than ``cutoff``) and each row's shortest one are made once per
+        scene (:meth:`pair_kernels.StaticBoundary.hop_rows`) and only gathered here.
+        """
+        nf = boundary.n_fluid
+        dyn = torch.from_numpy(layout.dynamic())
+        dyn_edges = take_edges(candidates, dyn)
+        ptr, src, closest = boundary.hop_rows(cutoff)
+        counts = ptr[layout.rows + 1] - ptr[layout.rows]
+        hop_src = src[pair_kernels._ranges(ptr[layout.rows], counts)] + nf
+        hop_dst = np.repeat(layout.targets, counts) + nf
+        shortest = float(closest[layout.rows].min()) if layout.rows.size else math.inf
+        return cls(
+            candidates,
+            None,
+            None,
+            dyn,
+            dyn_edges,
+            dyn_edges[1],
+            torch.from_numpy(hop_src),
+            torch.from_numpy(hop_dst),
+            pos[nf:].clone(),
+            shortest,
         )
 
     def geometry(self, pos: Tensor) -> tuple[Tensor, Tensor, Tensor]:
