@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import dataclasses
 import functools
 import logging
 import math
@@ -37,7 +38,7 @@ import torch
 from benchmarks.provenance import markdown, provenance, write_results
 from lagfluid.neighbors import available_backends, pair_kernels, radius_graph
 from lagfluid.neighbors.verlet import VerletNeighborList
-from lagfluid.state import ParticleState, ParticleType
+from lagfluid.state import ParticleState, ParticleType, SceneParams
 
 L0 = 0.05
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -191,15 +192,20 @@ def flow_state(scene: str, seconds: float, model: str, folder: Path, threads: in
     if seconds <= 0:
         return warmed_up(scene, 0, model, threads)[1]
     path = folder / f"{scene}_{model}_{seconds:g}s.pt"
-    if path.exists():
-        return torch.load(path, weights_only=False)
+    if path.exists():  # tensors and plain values only: nothing is unpickled
+        saved = torch.load(path, weights_only=True)
+        return ParticleState(
+            **saved["tensors"], params=SceneParams(**saved["params"]), time=saved["time"], step=saved["step"]
+        )
     state = warmed_up(scene, 0, model, threads)[1]
     steps = round(seconds / state.params.dt)
     log.info("making %s: %d steps of %s on %s (kept for later runs)", path, steps, model, scene)
     state = warmed_up(scene, steps, model, threads)[1]
     folder.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    torch.save(state, tmp)
+    tensors = {k: getattr(state, k) for k in ("pos", "vel", "ptype", "pressure", "bounds")}
+    params = dataclasses.asdict(state.params)
+    torch.save({"tensors": tensors, "params": params, "time": state.time, "step": state.step}, tmp)
     os.replace(tmp, path)
     return state
 

@@ -524,3 +524,19 @@ def test_the_verlet_benchmark_checks_every_way_against_the_previous_search():
     assert previous["pairs"] == present["pairs"] == by_way["present, whole update"]["pairs"] > 0
     assert present["scanned"] < previous["scanned"]  # the walls' rows are no longer searched
     assert present["floor_write_ms"] == round(1e3 * 16 * present["pairs"] / 1e10, 2)
+
+
+def test_the_benchmarks_kept_flow_state_comes_back_equal_and_unpickles_nothing(tmp_path):
+    """``benchmarks.neighbors.flow_state`` keeps a rollout's state as tensors and plain values (loaded with
+    ``weights_only=True``) and gives the same state back."""
+    import torch
+
+    from benchmarks.neighbors import flow_state
+
+    made = flow_state("dam_small", 0.004, "mps", tmp_path, 1)
+    (kept,) = tmp_path.glob("*.pt")
+    assert set(torch.load(kept, weights_only=True)) == {"tensors", "params", "time", "step"}
+    back = flow_state("dam_small", 0.004, "mps", tmp_path, 1)
+    assert back.step == made.step == 2 and back.params == made.params and back.time == made.time
+    for name in ("pos", "vel", "ptype", "pressure", "bounds"):
+        assert torch.equal(getattr(back, name), getattr(made, name)), name
