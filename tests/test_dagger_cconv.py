@@ -20,7 +20,7 @@ from baselines.cconv.trainable import CConvTrainable
 from lagfluid.data.datasets import StepWindows
 from lagfluid.data.expert_windows import EXPERT, LATER, ExpertStepWindows
 from lagfluid.data.layout import GROUP
-from lagfluid.errors import ConfigError, LagfluidError
+from lagfluid.errors import ConfigError
 from lagfluid.models.checkpoint import read_checkpoint
 from lagfluid.models.mps_simulator import build_mps
 from lagfluid.rollout import rollout
@@ -150,12 +150,11 @@ def test_the_round_fine_tunes_cconv_from_the_start_on_the_original_data_and_the_
     assert any(not torch.equal(tuned[k], first[k]) for k in tuned)
 
 
-def test_labels_of_fewer_steps_than_cconvs_unroll_are_refused_naming_the_horizon(tiny_data, tmp_path):
+def test_labels_of_fewer_steps_than_cconvs_unroll_are_refused_before_any_rollout(tiny_data, tmp_path):
     cfg = _train_cfg(tiny_data, tmp_path / "run", "train.dagger.horizon=1")
-    with pytest.raises(
-        LagfluidError, match=r"labels of 1 model step\(s\), this model trains on 2: .*horizon=2"
-    ):
+    with pytest.raises(ConfigError, match=r"train.dagger.horizon=1: CConv trains on 2-step unrolls"):
         train(cfg)
+    assert not (tmp_path / "run" / "dagger").exists()
 
 
 def test_a_bad_horizon_is_refused_before_anything_runs(tiny_data, tmp_path):

@@ -120,6 +120,16 @@ class CConvTrainable:
         if self.unroll_frames < 0:
             raise ConfigError(f"train.unroll_frames must be >= 0, got {self.unroll_frames}")
         self.rotate_about_gravity = bool(train.get("rotate_about_gravity", False))
+        dagger = train.get("dagger") or {}
+        horizon = dagger.get("horizon", 1)
+        short = isinstance(horizon, int) and 1 <= horizon < UNROLL  # a bad value: DAgger.from_config says so
+        if dagger.get("rounds") and not self.unroll_frames and short:
+            # refused before any round's rollouts: their labels could not train this model
+            raise ConfigError(
+                f"train.dagger.horizon={horizon}: CConv trains on {UNROLL}-step unrolls, so its DAgger "
+                f"labels must be {UNROLL} MPS steps: set train.dagger.horizon={UNROLL} "
+                "(train=cconv_dagger does)"
+            )
 
     # ------------------------------------------------------------------------ Trainable
     def datasets(self, data_dir: Path) -> tuple[Any, Any]:
