@@ -1011,6 +1011,13 @@ PLANTS = [
         "return StepWindows(data_dir, split, steps=UNROLL, boundary_radius=crop)",
         "tests/test_dagger_cconv.py::test_cconvs_window_of_the_hybrid_is_its_state_the_frames_velocity_and_mps_two_steps",
     ),
+    (
+        "cconv: DAgger labels shorter than its unroll accepted until the fine-tune (after the rollouts)",
+        "baselines/cconv/trainable.py",
+        "short = isinstance(horizon, int) and 1 <= horizon < UNROLL",
+        "short = False",
+        "tests/test_dagger_cconv.py::test_labels_of_fewer_steps_than_cconvs_unroll_are_refused_before_any_rollout",
+    ),
     # the Verlet list's split search: the boundary indexed once per scene (issue 37)
     (
         "Verlet list searches against a stale boundary index after the walls moved",
