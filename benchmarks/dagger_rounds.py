@@ -24,14 +24,13 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from omegaconf import OmegaConf
 
 from benchmarks.provenance import provenance, write_results
+from benchmarks.tables.config import compose_config
 from lagfluid.physics.settings import SolverSettings
 from lagfluid.tasks.evaluate.compare import Trajectory, compare
 
 RESULTS = Path(__file__).resolve().parent / "results"
-SOLVER = Path(__file__).resolve().parents[1] / "lagfluid" / "conf" / "solver" / "mps.yaml"
 
 
 def round_rows(run: Path, reference: Path, settings: SolverSettings) -> list[dict[str, Any]]:
@@ -78,7 +77,8 @@ def main(argv: list[str] | None = None) -> None:
     args = ap.parse_args(argv)
     load = os.getloadavg()[0]
     Trajectory.open(args.reference).file.close()  # a missing or unreadable reference fails here, named
-    rows = round_rows(args.run, args.reference, SolverSettings.from_config(OmegaConf.load(SOLVER)))
+    settings = SolverSettings.from_config(compose_config([]).solver)  # as Hydra composes it
+    rows = round_rows(args.run, args.reference, settings)
     intro = (
         f"# DAgger rounds of `{args.run}` on the dam\n\n{args.about}\n\n"
         "Each round's dam rollout (`dagger/round<k>/dam`, round 0: the starting weights) against one MPS "
