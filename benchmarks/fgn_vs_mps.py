@@ -79,6 +79,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--out-root", default="runs/bench/fgn_vs_mps")
     ap.add_argument("--override", nargs="*", default=[], help="extra Hydra overrides for every model")
     ap.add_argument("--no-save", action="store_true")
+    ap.add_argument("--results", default=str(RESULTS), help="folder of the .md/.csv (default: results/)")
     args = ap.parse_args(argv)
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -117,6 +118,8 @@ def main(argv: list[str] | None = None) -> None:
                 "divergence_max_per_s": round(metrics["velocity_divergence_per_s"]["max"], 3),
                 "chamfer_to_mps_l0": round(float(np.nanmean(dists)) / l0, 3) if dists else float("nan"),
                 "stages_ms": " ".join(f"{k}={1e3 * v:.1f}" for k, v in metrics["stage_median_s"].items()),
+                "stages_ms_mean": " ".join(f"{k}={1e3 * v:.1f}" for k, v in metrics["stage_mean_s"].items()),
+                "list_rebuilds": metrics.get("list_rebuilds", ""),
             }
         )
     prov = provenance(
@@ -131,14 +134,16 @@ def main(argv: list[str] | None = None) -> None:
         f"# FGN vs MPS on `{args.scene}` ({args.steps} steps)\n\n"
         "Same scene, steps and threads for every model, run one after another in one process. Time per "
         "step: median (`ms_per_step`, a typical step) and mean (`ms_per_step_mean`, the whole run with its "
-        "neighbour-list rebuilds); each speed-up is MPS's time over the model's. Chamfer: "
+        "neighbour-list rebuilds); each speed-up is MPS's time over the model's; the stages' median and "
+        "mean ms (`stages_ms`, `stages_ms_mean`) and the neighbour-list searches of the run "
+        "(`list_rebuilds`). Chamfer: "
         "paper eq. 29 from the model's fluid to MPS's at the same step, mean over stored frames, in l0. "
         "Density error and divergence: `lagfluid.metrics` (README, Metrics)."
     )
     if args.no_save:
         print(results_markdown(rows, intro, prov))
     else:
-        print(write_results(RESULTS, f"fgn_vs_mps_{args.scene}", rows, intro, prov))
+        print(write_results(Path(args.results), f"fgn_vs_mps_{args.scene}", rows, intro, prov))
 
 
 if __name__ == "__main__":

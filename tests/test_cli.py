@@ -631,3 +631,13 @@ def test_timing_summary_gives_the_whole_runs_mean_beside_the_typical_median():
     # three cheap steps and one with a neighbour-list rebuild: the median hides the rebuild, the mean does not
     summary = timing_summary({"step_seconds": [1.0, 1.0, 1.0, 5.0], "stage_seconds": {}, "info": {}})
     assert summary["time_per_step_median_s"] == 1.0 and summary["time_per_step_mean_s"] == 2.0
+    # and per stage: the rebuild's cost shows in the neighbour stage's mean, with the rebuilds counted
+    record = {
+        "step_seconds": [1.0, 1.0, 1.0, 5.0],
+        "stage_seconds": {"neighbors": [0.25, 0.25, 0.25, 4.25], "network": [0.75] * 4},
+        "info": {"list_rebuilds": [0.0, 0.0, 0.0, 1.0]},
+    }
+    summary = timing_summary(record)
+    assert summary["stage_median_s"] == {"neighbors": 0.25, "network": 0.75}
+    assert summary["stage_mean_s"] == {"neighbors": 1.25, "network": 0.75}
+    assert summary["list_rebuilds"] == 1

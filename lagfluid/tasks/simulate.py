@@ -56,11 +56,13 @@ OUTPUTS = ("rollout.h5", "metrics.json", "preview.png")
 
 
 def timing_summary(record: dict[str, Any]) -> dict[str, Any]:
-    """Median and mean time per step, median per stage, steps per second and PPE statistics of a record.
+    """Median and mean time per step and per stage, steps per second, list rebuilds and PPE statistics.
 
     The median is a typical step; the mean is what a whole rollout costs per step. They differ where some
     steps carry rare, costly work: a flowing 40k dam rebuilds its Verlet list every few steps, and FGN's mean
-    step there is ~1.4x its median (``benchmarks/results/neighbors_notes.md``, the Verlet skin).
+    step there is ~1.4x its median (``benchmarks/results/neighbors_notes.md``, the Verlet skin). So each
+    stage has its mean beside its median, and ``list_rebuilds`` counts the steps' neighbour-list searches
+    (for simulators that report them).
     """
     steps = record["step_seconds"]
     out: dict[str, Any] = {
@@ -68,8 +70,11 @@ def timing_summary(record: dict[str, Any]) -> dict[str, Any]:
         "time_per_step_mean_s": sum(steps) / len(steps) if steps else math.nan,
         "steps_per_second": 1.0 / median(steps) if steps else math.nan,
         "stage_median_s": {k: median(v) for k, v in record["stage_seconds"].items()},
+        "stage_mean_s": {k: sum(v) / len(v) for k, v in record["stage_seconds"].items() if v},
     }
     info = record["info"]
+    if "list_rebuilds" in info:
+        out["list_rebuilds"] = int(sum(info["list_rebuilds"]))
     if "ppe_iterations" in info:
         it = info["ppe_iterations"]
         out["ppe"] = {
