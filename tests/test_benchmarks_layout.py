@@ -28,6 +28,8 @@ ROOT = {
     "fgn_speed.py",
     "mps_speed.py",
     "neighbors.py",
+    "whole_run.py",
+    "two_trees.py",
     "host_syncs.py",
     "cconv_layer.py",
     "gns_edge_layer.py",
