@@ -58,6 +58,7 @@ Building blocks of a network and its step
     ``semi_implicit_euler``  ``v += a dt; x += v dt``, the update a rollout applies
     ``acceleration_from_positions``  its inverse over three positions, a training target
     ``radius_graph``         the ``(2, E)`` edges of every ordered pair closer than a radius
+    ``radius_graph_between``  the ``(2, E)`` pairs closer than a radius from one point set into another
     ``edge_vectors``         relative positions and distances of a graph's edges
     ``kernel``               the MPS weight ``re / r - 1`` of pair distances (0 beyond ``re``)
     ``device_constant``      a small constant tensor, cached per device and dtype
@@ -107,7 +108,7 @@ from lagfluid.models.mps_simulator import build_mps
 from lagfluid.models.simulator import Simulator, check_simulator
 from lagfluid.models.trainable import Trainable
 from lagfluid.models.training_range import RangeWarner
-from lagfluid.neighbors import edge_vectors, pair_kernels, radius_graph
+from lagfluid.neighbors import edge_vectors, pair_kernels, radius_graph, radius_graph_between
 from lagfluid.physics.mps import CollisionRule, ExactPressure
 from lagfluid.physics.operators import kernel
 from lagfluid.physics.scheme import SplitStepSimulator
@@ -160,6 +161,7 @@ __all__ = [
     "pair_kernels",
     "parameter_count",
     "radius_graph",
+    "radius_graph_between",
     "read_checkpoint",
     "rollout",
     "rollout_bytes",

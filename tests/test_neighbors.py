@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import itertools
 import math
+import re
 from types import SimpleNamespace
 
 import numpy as np
@@ -540,3 +541,72 @@ def test_the_benchmarks_kept_flow_state_comes_back_equal_and_unpickles_nothing(t
     assert back.step == made.step == 2 and back.params == made.params and back.time == made.time
     for name in ("pos", "vel", "ptype", "pressure", "bounds"):
         assert torch.equal(getattr(back, name), getattr(made, name)), name
+
+
+# ------------------------------------------------------------------------- one point set into another
+def stacked_between(sources, targets, r, backend="brute", source_batch=None, target_batch=None):
+    """The pairs of the stacked search (sources first, targets receiving), target-target pairs dropped."""
+    n_s = sources.shape[0]
+    both = torch.cat([sources, targets])
+    receivers = torch.zeros(both.shape[0], dtype=torch.bool)
+    receivers[n_s:] = True
+    batch = None if source_batch is None else torch.cat([source_batch, target_batch])
+    edges = radius_graph(both, r, batch=batch, receivers=receivers, backend=backend)
+    edges = edges[:, edges[0] < n_s]
+    return torch.stack([edges[0], edges[1] - n_s])
+
+
+def test_pairs_between_two_sets_by_hand():
+    # sources on the x axis at 0 and 1 l0; targets at 0.5 l0 above the first, 1.5 l0 and 3 l0 along x
+    sources = torch.tensor([[0.0, 0.0, 0.0], [L0, 0.0, 0.0]])
+    targets = torch.tensor([[0.0, 0.0, 0.5 * L0], [1.5 * L0, 0.0, 0.0], [3 * L0, 0.0, 0.0]])
+    out = nb.radius_graph_between(sources, targets, 1.2 * L0)
+    # target 0: |s0 - t0| = 0.5 l0, |s1 - t0| = sqrt(1.25) l0 = 1.118 l0: both; target 1: 1.5 l0 and 0.5 l0:
+    # s1 only; target 2: 3 and 2 l0: none. Sources are never paired with each other, targets neither.
+    assert out.tolist() == [[0, 1, 1], [0, 0, 1]]
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("dim", [3, 2])
+def test_pairs_between_two_sets_equal_the_stacked_search(dtype, dim):
+    gen = torch.Generator().manual_seed(7)
+    lat = lattice(7, dim, dtype)  # pairs at exactly 1 and sqrt(2) l0: the cut decides them the same way
+    sources = torch.cat([lat, (torch.rand(300, dim, generator=gen) * 0.4 - 0.05).to(dtype)])
+    # targets: a shifted lattice (exact distances again), random points, and points off the sources' box
+    targets = torch.cat([lat[::3] + L0, (torch.rand(200, dim, generator=gen) * 0.5 - 0.1).to(dtype)])
+    targets = torch.cat([targets, torch.full((2, dim), 5.0, dtype=dtype)])
+    for factor in (1.0, 2.1, math.sqrt(2)):
+        r = factor * L0
+        want = stacked_between(sources, targets, r)
+        got = nb.radius_graph_between(sources, targets, r)
+        assert torch.equal(got, want), f"r = {factor} l0"
+        j, i = got
+        # sorted by target, then source
+        assert bool(((i[1:] > i[:-1]) | ((i[1:] == i[:-1]) & (j[1:] > j[:-1]))).all())
+
+
+def test_pairs_between_two_sets_in_batches_and_empty_sets():
+    gen = torch.Generator().manual_seed(3)
+    sources, targets = torch.rand(80, 3, generator=gen) * 0.3, torch.rand(60, 3, generator=gen) * 0.3
+    sb, tb = torch.arange(80) % 2, torch.arange(60) % 2
+    got = nb.radius_graph_between(sources, targets, 2 * L0, source_batch=sb, target_batch=tb)
+    assert torch.equal(got, stacked_between(sources, targets, 2 * L0, "brute", sb, tb))
+    assert bool((sb[got[0]] == tb[got[1]]).all()) and got.shape[1] > 0
+    assert nb.radius_graph_between(sources[:0], targets, L0).shape == (2, 0)
+    assert nb.radius_graph_between(sources, targets[:0], L0).shape == (2, 0)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "needle"),
+    [
+        ({"targets": torch.zeros(3, 2)}, "must be (S, D) and (T, D)"),
+        ({"targets": torch.zeros(3, 3, dtype=torch.float64)}, "must share a dtype"),
+        ({"source_batch": torch.zeros(4, dtype=torch.long)}, "both source_batch and target_batch"),
+        ({"targets": torch.tensor([[0.0, float("nan"), 0.0]])}, "not finite"),
+        ({"r": -1.0}, "positive finite"),
+    ],
+)
+def test_pairs_between_two_sets_refuse_bad_input(kwargs, needle):
+    args = {"sources": torch.zeros(4, 3), "targets": torch.zeros(3, 3), "r": L0, **kwargs}
+    with pytest.raises(ValueError, match=re.escape(needle)):
+        nb.radius_graph_between(args.pop("sources"), args.pop("targets"), args.pop("r"), **args)

@@ -38,7 +38,14 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from lagfluid.zoo import ConfigError, device_constant, edge_vectors, pair_kernels, radius_graph
+from lagfluid.zoo import (
+    ConfigError,
+    device_constant,
+    edge_vectors,
+    pair_kernels,
+    radius_graph,
+    radius_graph_between,
+)
 
 __all__ = [
     "MAPPINGS",
@@ -194,18 +201,11 @@ def conv_pairs(
     """
     if out_pos is None:
         return radius_graph(inp_pos, radius, batch=inp_batch)
-    n_in = inp_pos.shape[0]
-    both = torch.cat([inp_pos, out_pos])
-    receivers = torch.zeros(both.shape[0], dtype=torch.bool, device=both.device)
-    receivers[n_in:] = True
-    batch = None
-    if inp_batch is not None or out_batch is not None:
-        if inp_batch is None or out_batch is None:
-            raise ValueError("conv_pairs: give both inp_batch and out_batch, or neither")
-        batch = torch.cat([inp_batch, out_batch])
-    edges = radius_graph(both, radius, batch=batch, receivers=receivers)
-    edges = edges[:, edges[0] < n_in]  # output points are not inputs of each other
-    return torch.stack([edges[0], edges[1] - n_in])
+    if (inp_batch is None) != (out_batch is None):
+        raise ValueError("conv_pairs: give both inp_batch and out_batch, or neither")
+    # the inputs binned, the outputs querying them: no output-output pair is scanned (the fluid's, for the
+    # boundary's pairs into the fluid)
+    return radius_graph_between(inp_pos, out_pos, radius, source_batch=inp_batch, target_batch=out_batch)
 
 
 def _block_entries_torch(

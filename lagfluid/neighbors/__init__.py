@@ -2,7 +2,8 @@
 
 One layer (docs/architecture.md#layers), below the physics and the models, with no import of them:
 
-* :mod:`~lagfluid.neighbors.search`: :func:`radius_graph` (every ordered pair closer than ``r``) and its
+* :mod:`~lagfluid.neighbors.search`: :func:`radius_graph` (every ordered pair closer than ``r``),
+  :func:`radius_graph_between` (pairs from one point set into another) and their
   backends (numba, scipy, torch_cluster, cell_list, brute), all returning the same edges;
 * :mod:`~lagfluid.neighbors.verlet`: the Verlet list the solver steps with (candidates within ``cutoff +
   skin``, filtered at each set of positions) and its :class:`~lagfluid.neighbors.verlet.Graph`;
@@ -23,6 +24,7 @@ from lagfluid.neighbors.search import (
     NeighborOverflowError,
     available_backends,
     radius_graph,
+    radius_graph_between,
     restrict_radius,
 )
 
@@ -33,5 +35,6 @@ __all__ = [
     "edge_vectors",
     "kernel_adjacency",
     "radius_graph",
+    "radius_graph_between",
     "restrict_radius",
 ]

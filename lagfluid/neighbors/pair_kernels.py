@@ -532,6 +532,39 @@ def cell_search(pos: Tensor, radius: float, batch: Tensor | None, receivers: Ten
     return None if cells is None else cells.pairs(receivers)
 
 
+def cross_search(sources: Tensor, targets: Tensor, radius: float) -> Tensor | None:
+    """Every pair (j source, i target) with torch's ``|s_j - t_i| < radius``: one point set into another.
+
+    The ``numba`` backend of :func:`lagfluid.neighbors.search.radius_graph_between`: a cell list over the
+    sources only, queried at the targets (in their cell order), so no target-target pair is ever scanned.
+    The same cut (:func:`_squared_bound`) and squared distance as :func:`cell_search` (the difference's
+    sign aside, which its square does not see), hence the same pairs.
+
+    Args:
+        sources: (S, D) CPU positions, D in {2, 3}, finite.
+        targets: (T, D) finite positions of the same dtype.
+        radius: metres.
+
+    Returns:
+        (2, E) int64 edge index [j; i] (j a source row, i a target row) sorted by target, then source; None
+        when the sources' box holds too many cells for a dense cell table.
+    """
+    cells = CellList.build(sources, radius)
+    if cells is None:
+        return None
+    q = _as_numpy(targets)
+    qcell = cells.cells_of(q.astype(np.float64))
+    dims = cells._args[4]
+    inside = np.clip(qcell, 0, dims - 1)  # a query off the grid scans nothing; any order visits it
+    visit = np.argsort(((inside[:, 1] * dims[2] + inside[:, 2]) * dims[3]) + inside[:, 3], kind="stable")
+    rows = cells.query_rows(q, qcell, visit, np.full(q.shape[0], -1, dtype=np.int64))
+    starts = np.zeros(q.shape[0] + 1, dtype=np.int64)
+    np.cumsum(rows.counts, out=starts[1:])
+    out = np.empty((2, int(starts[-1])), dtype=np.int64)
+    _kernels().fluid_rows(rows.slots, rows.buf, rows.counts, 0, starts[:-1], out[1], out[0])
+    return torch.from_numpy(out)
+
+
 # ------------------------------------------------------------------------- the Verlet list's split search
 @dataclass(frozen=True)
 class QueryRows:

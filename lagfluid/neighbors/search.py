@@ -536,6 +536,67 @@ def radius_graph(
     return torch.stack([j, i])
 
 
+def radius_graph_between(
+    sources: Tensor,
+    targets: Tensor,
+    r: float,
+    *,
+    source_batch: Tensor | None = None,
+    target_batch: Tensor | None = None,
+    backend: str = "auto",
+) -> Tensor:
+    """Every pair (source ``j``, target ``i``) closer than ``r``: a graph from one point set into another.
+
+    What :func:`radius_graph` finds over the two sets stacked (sources first) with the targets as receivers,
+    less the target-target pairs. On the CPU with Numba and no batches, only the sources are binned and the
+    targets query them (:func:`pair_kernels.cross_search`): no target-target pair is scanned (CConv's
+    boundary-to-fluid pairs, where the stacked search scanned every fluid pair to drop it).
+
+    Args:
+        sources: (S, 3) or (S, 2) positions.
+        targets: (T, 3) or (T, 2) positions, the sources' width, dtype and device.
+        r: radius in metres (strict: ``|s_j - t_i| < r``).
+        source_batch: optional (S,) graph ids of the sources (with ``target_batch``, or neither).
+        target_batch: optional (T,) graph ids of the targets: no pair joins two graphs.
+        backend: as :func:`radius_graph`.
+
+    Returns:
+        (2, E) int64 [j; i], ``j`` a row of ``sources`` and ``i`` a row of ``targets``, sorted by target then
+        source.
+
+    Raises:
+        ValueError: as :func:`radius_graph`; sets of different widths, dtypes or devices; one batch only.
+    """
+    if (source_batch is None) != (target_batch is None):
+        raise ValueError("radius_graph_between: give both source_batch and target_batch, or neither")
+    for name, t in (("sources", sources), ("targets", targets)):
+        if not isinstance(t, Tensor):
+            raise ValueError(f"{name} must be a torch.Tensor, got {type(t).__name__}")
+    if sources.dim() != 2 or targets.dim() != 2 or sources.shape[1] != targets.shape[1]:
+        raise ValueError(
+            "sources and targets must be (S, D) and (T, D), "
+            f"got {tuple(sources.shape)} and {tuple(targets.shape)}"
+        )
+    if sources.dtype != targets.dtype or sources.device != targets.device:
+        raise ValueError(
+            f"sources ({sources.dtype}, {sources.device}) and targets ({targets.dtype}, {targets.device}) "
+            "must share a dtype and a device"
+        )
+    n_s = sources.shape[0]
+    both = torch.cat([sources, targets])
+    batch = None if source_batch is None else torch.cat([source_batch, target_batch])
+    radius, resolved = _check_inputs(both, r, batch, None, backend, None)
+    if resolved == "numba" and batch is None and n_s and targets.shape[0]:
+        found = pair_kernels.cross_search(sources.detach(), targets.detach(), radius)
+        if found is not None:
+            return found
+    receivers = torch.zeros(both.shape[0], dtype=torch.bool, device=both.device)
+    receivers[n_s:] = True
+    edges = radius_graph(both, radius, batch=batch, receivers=receivers, backend=backend)
+    edges = edges[:, edges[0] < n_s]  # targets are not sources of each other
+    return torch.stack([edges[0], edges[1] - n_s])
+
+
 def restrict_radius(edge_index: Tensor, dist: Tensor, r: float) -> tuple[Tensor, Tensor]:
     """Sub-graph of the edges shorter than ``r``.
 
