@@ -16,7 +16,20 @@ class ConfigError(LagfluidError, ValueError):
 
 
 class RolloutError(LagfluidError, RuntimeError):
-    """A rollout stopped by its guard: NaN/inf, a particle leaving the domain, Courant number too high."""
+    """A rollout stopped by its guard: NaN/inf, a particle leaving the domain, Courant number too high.
+
+    Attributes:
+        kind: which guard test stopped it (``"non_finite"``, ``"left_domain"``, ``"courant"``), or None for
+            other refusals (bad arguments, a resume that cannot continue).
+    """
+
+    GUARD_KINDS = ("non_finite", "left_domain", "courant")
+
+    def __init__(self, message: str, kind: str | None = None) -> None:
+        super().__init__(message)
+        if kind is not None and kind not in self.GUARD_KINDS:
+            raise ValueError(f"RolloutError kind must be one of {self.GUARD_KINDS} or None, got {kind!r}")
+        self.kind = kind
 
 
 class MetricInputError(LagfluidError, ValueError):

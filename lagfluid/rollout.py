@@ -67,7 +67,8 @@ class Guard:
                 raise RolloutError(
                     f"step {step}: fluid particle {i} has a non-finite {name} {values[i].tolist()} "
                     f"({int(bad.sum())} particles affected); the simulation blew up - try a smaller dt "
-                    f"(now {state.params.dt})"
+                    f"(now {state.params.dt})",
+                    kind="non_finite",
                 )
         outside = state.fluid_outside_bounds()
         if outside.numel():
@@ -76,7 +77,8 @@ class Guard:
                 f"step {step}: fluid particle {i} left the domain at {state.pos[i].tolist()} "
                 f"(domain {state.bounds[0].tolist()} .. {state.bounds[1].tolist()}; "
                 f"{outside.numel()} particles outside); check the walls of the scene or reduce dt "
-                f"(now {state.params.dt})"
+                f"(now {state.params.dt})",
+                kind="left_domain",
             )
         i = int(state.vel[:nf].norm(dim=1).argmax())
         speed = float(state.vel[i].double().norm())  # float64: |v| = 1e30 overflows float32 when squared
@@ -87,7 +89,8 @@ class Guard:
                 f"step {step}: Courant number {courant:.3g} at fluid particle {i} "
                 f"(|v| = {speed:.3g} m/s){start} exceeds solver.guard.max_courant={self.max_courant}; "
                 f"reduce dt (now {state.params.dt}) "
-                f"or raise the limit"
+                f"or raise the limit",
+                kind="courant",
             )
 
     def _passes(self, state: ParticleState) -> bool:

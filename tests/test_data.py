@@ -29,10 +29,11 @@ from lagfluid.data.datasets import (
 from lagfluid.data.layout import read_scene_info, scene_path, split_counts
 from lagfluid.data.statistics import RunningStats, dataset_statistics
 from lagfluid.data.store import TrajectoryFileError, read_trajectory
-from lagfluid.errors import LagfluidError
+from lagfluid.errors import LagfluidError, RolloutError
 from lagfluid.neighbors import radius_graph
 from lagfluid.physics import operators as ops
 from lagfluid.physics.settings import SolverSettings, lattice_constants
+from lagfluid.rollout import Guard
 from lagfluid.run import CONF_DIR, check_command_line
 from lagfluid.state import ParticleType
 from lagfluid.tasks.generate import generate
@@ -365,6 +366,42 @@ def test_a_scene_stopped_by_the_guard_is_kept_apart_and_named(tmp_path):
     assert not scene_path(tmp_path, 0).exists() and not (tmp_path / "metadata.json").exists()
     _generate(tmp_path, "steps=1", "num_scenes=1")  # fixed settings: the stale failure is cleared
     assert [p.name for p in (tmp_path / "scenes").iterdir()] == ["scene_00000.h5"]
+
+
+@pytest.mark.parametrize(
+    ("kind", "policy", "kept"),
+    [("left_domain", "keep", True), ("left_domain", "error", False), ("courant", "keep", False)],
+)
+def test_mps_stopped_by_a_splash_out_of_the_domain_is_kept_shorter_only_when_asked(
+    tmp_path, monkeypatch, kind, policy, kept
+):
+    # A guard that stops the solver at step 4 of 8 as if a particle had flown over the rim (or too fast).
+    real_check = Guard.check
+
+    def check(self, state):
+        if state.step >= 4:
+            raise RolloutError(f"step {state.step}: planted stop", kind=kind)
+        real_check(self, state)
+
+    monkeypatch.setattr(Guard, "check", check)
+    args = ("num_scenes=1", "steps=8", "data.sample_every=2", f"data.on_fluid_leaving={policy}")
+    if not kept:
+        with pytest.raises(LagfluidError, match="planted stop"):
+            _generate(tmp_path, *args)
+        assert (tmp_path / "scenes" / "scene_00000.failed.h5").is_file()
+        assert not scene_path(tmp_path, 0).exists()
+        return
+    _, meta = _generate(tmp_path, *args)
+    scene = meta["scenes"][0]
+    # steps 0, 2 sampled and stored; step 4's state failed the guard: the scene ends at step 3's state
+    assert scene["stopped_at_step"] == 3 and "planted stop" in scene["stop_reason"]
+    assert scene["samples"] == 2 and scene["frames"] == 2
+    assert len(AdvectionSamples(tmp_path, split=None)) == 2
+
+
+def test_on_fluid_leaving_refuses_other_values(tmp_path):
+    with pytest.raises(LagfluidError, match=r"data.on_fluid_leaving must be 'error' or 'keep', got 'drop'"):
+        _generate(tmp_path, "num_scenes=1", "data.on_fluid_leaving=drop")
 
 
 def test_split_counts():

@@ -217,8 +217,9 @@ def test_guard_checks_every_k_steps_and_every_written_frame(check_every, write_e
 def test_guard_reports_a_particle_leaving_the_domain():
     state = fluid_block(3, 3, 3, vel=(0.0, 0.0, -1.0))
     state.bounds = torch.tensor([[-1.0, -1.0, -0.001], [1.0, 1.0, 1.0]], dtype=state.dtype)
-    with pytest.raises(RolloutError, match="left the domain"):
+    with pytest.raises(RolloutError, match="left the domain") as err:
         rollout(mps(), state, 5)
+    assert err.value.kind == "left_domain"  # data generation keeps such a scene shorter on request
 
 
 def test_guard_catches_nan():
@@ -229,8 +230,16 @@ def test_guard_catches_nan():
         ptype=state.ptype,
         check=False,
     )
-    with pytest.raises(RolloutError, match=r"fluid particle 2 has a non-finite velocity"):
+    with pytest.raises(RolloutError, match=r"fluid particle 2 has a non-finite velocity") as err:
         Guard().check(bad)
+    assert err.value.kind == "non_finite"
+    fast_vel = state.vel.index_fill(0, torch.tensor([1]), 100.0)
+    fast = ParticleState(pos=state.pos, vel=fast_vel, ptype=state.ptype)
+    with pytest.raises(RolloutError, match=r"Courant number") as err:
+        Guard().check(fast)
+    assert err.value.kind == "courant"
+    with pytest.raises(ValueError, match="kind must be one of"):
+        RolloutError("x", kind="splash")
 
 
 def test_recorded_intermediates_invert_the_update_exactly():

@@ -23,7 +23,10 @@ Each file carries a *fingerprint* of everything that determines its content (sce
 physical parameters, steps, sampling, solver and collision settings); a finished file with another
 fingerprint is an error rather than silently mixed into the dataset. A scene stopped by the rollout guard
 (NaN, Courant number, a particle leaving the tank) is kept as ``scene_00007.failed.h5`` for inspection;
-the other scenes still run and the generation then fails naming it.
+the other scenes still run and the generation then fails naming it. With ``data.on_fluid_leaving=keep``
+(``data=paper``) a scene stopped by a fluid particle leaving the domain (a splash over the rim of the open
+tank) is kept instead as a shorter scene, its ``stopped_at_step`` and ``stop_reason`` in the file and in
+``metadata.json``: the authors' runs delete such particles and go on, a file of fixed particle count ends.
 
 The scene-file layout is :mod:`lagfluid.data.layout`'s; the statistics in ``metadata.json`` are
 :mod:`lagfluid.data.statistics`' and describe the data (a network's normalisation is fitted by its

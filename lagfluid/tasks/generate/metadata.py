@@ -111,6 +111,15 @@ def write_metadata(spec: DataSpec, generation_seconds: float | None = None) -> d
                 "collision_samples": i.collision_samples,
                 "wall_time_s": seconds[k],
                 "step_time_median_s": float(i.attrs.get("step_time_median_s", math.nan)),
+                # a shorter scene (a policy's stop, or MPS's with data.on_fluid_leaving=keep): where and why
+                **(
+                    {
+                        "stopped_at_step": int(i.attrs["stopped_at_step"]),
+                        "stop_reason": str(i.attrs["stop_reason"]),
+                    }
+                    if "stopped_at_step" in i.attrs
+                    else {}
+                ),
             }
             for k, i in enumerate(infos)
         ],

@@ -69,6 +69,9 @@ class DataSpec:
         policy: None when the MPS solver moves the particles; else what moves them in an on-policy dataset
             (``data.policy=model``: the model, its stages, its network files' hashes;
             :mod:`lagfluid.tasks.generate.policy`).
+        on_fluid_leaving: ``"error"``: an MPS scene stopped by a fluid particle leaving the domain fails;
+            ``"keep"``: it is kept as a shorter scene (the steps before the stop). Non-finite values and the
+            Courant limit always fail.
     """
 
     name: str
@@ -89,6 +92,7 @@ class DataSpec:
     dtype: torch.dtype
     device: torch.device
     policy: dict[str, Any] | None = None
+    on_fluid_leaving: str = "error"
 
     @classmethod
     def from_config(cls, cfg: DictConfig) -> DataSpec:
@@ -107,6 +111,9 @@ class DataSpec:
         index = data.get("scene_index")
         if index is not None and not 0 <= int(index) < num_scenes:
             raise LagfluidError(f"data.scene_index must be in [0, {num_scenes}), got {index}")
+        on_leaving = str(data.get("on_fluid_leaving") or "error")
+        if on_leaving not in ("error", "keep"):
+            raise LagfluidError(f"data.on_fluid_leaving must be 'error' or 'keep', got {on_leaving!r}")
         splits = {k: float(v) for k, v in (data.get("splits") or {}).items()}
         if set(splits) - set(SPLITS) or any(v < 0 for v in splits.values()) or splits.get("train", 0) <= 0:
             raise LagfluidError(
@@ -150,6 +157,7 @@ class DataSpec:
             dtype=dtype,
             device=run_device(cfg),
             policy=policy_identity(cfg),
+            on_fluid_leaving=on_leaving,
         )
 
     @property
