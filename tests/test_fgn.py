@@ -927,3 +927,15 @@ def test_graphs_derived_across_a_rollout_equal_fresh_filters(monkeypatch, model)
         assert torch.equal(g.dist[order], ref.dist[ref_order])
     per_step = {"fgn": 1, "mps": 2}[model]
     assert len(filters) <= per_step * steps + 2, (len(filters), len(asked))
+
+
+def test_fgn_and_mps_lists_take_their_own_automatic_skin():
+    # solver.neighbors.skin_fraction=auto: FGN's learned stages list at 2.1 l0 with a 0.3 skin, MPS at 3.1
+    # l0 with 0.15 (each the fastest measured, lagfluid.physics.settings.SolverSettings.skin_fraction)
+    skins = {}
+    for model in ("fgn", "mps"):
+        cfg = _compose(f"model={model}", "scene=dam_small")
+        sim, state = build_simulator(cfg), build_initial_state(cfg)
+        sim.reset(state)
+        skins[model] = (sim.neighbors.cutoff / 0.05, sim.neighbors.skin / sim.neighbors.cutoff)
+    assert skins["fgn"] == pytest.approx((2.1, 0.3)) and skins["mps"] == pytest.approx((3.1, 0.15))

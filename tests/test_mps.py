@@ -332,6 +332,20 @@ def test_solver_yaml_defaults_are_the_dataclass_defaults():
     assert SolverSettings.from_config({"ppe": {"tol": "1e-8"}}).ppe_tol == 1e-8  # YAML's string 1e-8
 
 
+def test_auto_skin_is_the_measured_fastest_per_list_and_an_explicit_one_wins():
+    auto = SolverSettings.from_config(SOLVER)
+    assert auto.neighbor_skin_fraction is None  # conf/solver/mps.yaml: auto
+    assert auto.skin_fraction(3.1) == 0.15 and auto.skin_fraction(2.1) == 0.3  # MPS's list, FGN's list
+    fixed = SolverSettings.from_config({"neighbors": {"skin_fraction": 0.2}})
+    assert fixed.skin_fraction(3.1) == fixed.skin_fraction(2.1) == 0.2
+    sim = mps()
+    sim.reset(fluid_block(3, 3, 3))
+    assert sim.neighbors.skin == pytest.approx(0.15 * 3.1 * 0.05)  # l0 = 5 cm
+    for bad in ("fast", -1.0):
+        with pytest.raises(ConfigError, match=r"solver.neighbors.skin_fraction must be >= 0 or auto"):
+            SolverSettings.from_config({"neighbors": {"skin_fraction": bad}})
+
+
 def test_reference_dt_makes_the_density_term_a_fixed_physical_relaxation():
     from lagfluid.physics.ppe import ppe_source
 

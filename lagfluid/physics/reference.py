@@ -30,7 +30,7 @@ def mps_constants(state: ParticleState, settings: SolverSettings) -> MPSConstant
 
 def mps_neighbor_list(state: ParticleState, settings: SolverSettings) -> VerletNeighborList:
     """A Verlet list with the MPS solver's cutoff, skin, backend and wall hops (so the same wall targets)."""
-    return neighbor_list(settings, exact_cutoff(settings, state.params) * state.params.l0)
+    return neighbor_list(settings, exact_cutoff(settings, state.params), state.params.l0)
 
 
 def exact_context(

@@ -157,7 +157,7 @@ class SplitStepSimulator:
         one-step.
         """
         self.constants = scene_constants(state, self.settings)
-        self.neighbors = neighbor_list(self.settings, self.cutoff(state.params) * state.params.l0)
+        self.neighbors = neighbor_list(self.settings, self.cutoff(state.params), state.params.l0)
         self._carried = None
 
     def memory_needed(self, state: ParticleState) -> float:
@@ -169,7 +169,8 @@ class SplitStepSimulator:
         from lagfluid.memory import DEFAULT_BYTES_PER_PAIR, rollout_bytes
 
         params = state.params
-        radius = self.cutoff(params) * (1 + self.settings.neighbor_skin_fraction) * params.l0
+        cutoff = self.cutoff(params)
+        radius = cutoff * (1 + self.settings.skin_fraction(cutoff)) * params.l0
         return rollout_bytes(state, radius, DEFAULT_BYTES_PER_PAIR)
 
     def cutoff(self, params: SceneParams) -> float:

@@ -32,6 +32,9 @@ def solver_identity(solver: dict[str, Any]) -> dict[str, Any]:
     return {k: v for k, v in solver.items() if not (k in neutral and v == neutral[k])}
 
 
+# Lists at least this long (in l0: MPS's 3.1) take the smaller automatic skin (SolverSettings.skin_fraction).
+AUTO_SKIN_LARGE_CUTOFF = 3.0
+
 # (config group, key) -> (SolverSettings field, type)
 _NESTED_KEYS: dict[tuple[str, str], tuple[str, type]] = {
     ("ppe", "method"): ("ppe_method", str),
@@ -40,9 +43,19 @@ _NESTED_KEYS: dict[tuple[str, str], tuple[str, type]] = {
     ("ppe", "maxiter"): ("ppe_maxiter", int),
     ("ppe", "warm_start"): ("ppe_warm_start", bool),
     ("neighbors", "backend"): ("neighbor_backend", str),
-    ("neighbors", "skin_fraction"): ("neighbor_skin_fraction", float),
+    ("neighbors", "skin_fraction"): ("neighbor_skin_fraction", lambda v: _skin_setting(v)),
     ("neighbors", "wall_hops"): ("wall_hops", int),
 }
+
+
+def _skin_setting(value: object) -> float | None:
+    """``solver.neighbors.skin_fraction`` as a number, or None for ``auto`` (SolverSettings.skin_fraction)."""
+    if value == "auto":
+        return None
+    try:
+        return float(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        raise ConfigError(f"solver.neighbors.skin_fraction must be >= 0 or auto, got {value!r}") from None
 
 
 def _is_number(value: object) -> bool:
@@ -75,7 +88,7 @@ class SolverSettings:
     ppe_maxiter: int = 200
     ppe_warm_start: bool = True
     neighbor_backend: str = "auto"
-    neighbor_skin_fraction: float = 0.3
+    neighbor_skin_fraction: float | None = None  # None: auto, see skin_fraction
     wall_hops: int | None = 2
 
     def __post_init__(self) -> None:
@@ -99,8 +112,9 @@ class SolverSettings:
                 raise bad(key, value, "one of " + ", ".join(allowed))
         if self.wall_hops is not None and not (isinstance(self.wall_hops, int) and self.wall_hops >= 1):
             raise bad("neighbors.wall_hops", self.wall_hops, "an integer >= 1 or null (every wall)")
-        if not self.neighbor_skin_fraction >= 0:
-            raise bad("neighbors.skin_fraction", self.neighbor_skin_fraction, ">= 0")
+        skin = self.neighbor_skin_fraction
+        if skin is not None and not (_is_number(skin) and skin >= 0):
+            raise bad("neighbors.skin_fraction", skin, ">= 0 or auto")
         if not (self.ppe_tol > 0 and self.ppe_maxiter >= 1):
             raise bad("ppe.tol / ppe.maxiter", (self.ppe_tol, self.ppe_maxiter), "> 0 / >= 1")
         if not 0 < self.surface_beta <= 1:
@@ -111,6 +125,18 @@ class SolverSettings:
         ref_dt = self.source_density_reference_dt
         if ref_dt is not None and not (_is_number(ref_dt) and math.isfinite(ref_dt) and ref_dt > 0):
             raise bad("source_density_reference_dt", ref_dt, "a finite time step > 0 (s) or null")
+
+    def skin_fraction(self, cutoff_l0: float) -> float:
+        """The Verlet skin as a fraction of a list's cutoff ``cutoff_l0`` (in l0): the setting, or auto.
+
+        Auto is the fastest measured over the whole flowing second (quiet machine, alternated): 0.15 for a
+        list at the Laplacian's 3.1 l0 (MPS and the hybrids that solve the PPE; 7 % faster than 0.3 at 10k,
+        ``benchmarks/results/whole_run_mps_dam_medium.md``), 0.3 for the learned stages' 2.1 l0 (FGN;
+        4 % faster than 0.15 and 10 % than 0.5 at 40k, ``benchmarks/results/whole_run_fgn_dam_large.md``).
+        """
+        if self.neighbor_skin_fraction is not None:
+            return self.neighbor_skin_fraction
+        return 0.15 if cutoff_l0 >= AUTO_SKIN_LARGE_CUTOFF else 0.3
 
     def density_source_weight(self, dt: float) -> float:
         """Weight of the PPE source's density term ``(n - n0)/(dt^2 n0)`` at time step ``dt`` (s).

@@ -22,11 +22,11 @@ from lagfluid.physics.timing import StageTimer
 from lagfluid.state import ParticleState, SceneParams
 
 
-def neighbor_list(settings: SolverSettings, cutoff: float) -> VerletNeighborList:
-    """A fresh Verlet list at ``cutoff`` (m) with the settings' skin fraction, backend and wall hops."""
-    return VerletNeighborList(
-        cutoff, settings.neighbor_skin_fraction * cutoff, settings.neighbor_backend, settings.wall_hops
-    )
+def neighbor_list(settings: SolverSettings, cutoff_l0: float, l0: float) -> VerletNeighborList:
+    """A fresh Verlet list at ``cutoff_l0 * l0`` (m) with the settings' skin, backend and wall hops."""
+    cutoff = cutoff_l0 * l0
+    skin = settings.skin_fraction(cutoff_l0) * cutoff
+    return VerletNeighborList(cutoff, skin, settings.neighbor_backend, settings.wall_hops)
 
 
 def read_info(info: dict[str, float | Tensor]) -> dict[str, float]:

@@ -175,7 +175,7 @@ def generate_scene(cfg: DictConfig, spec: DataSpec, index: int) -> Path:
         stopped.get("stopped_at_step", spec.steps),
         time.perf_counter() - start,
         1e3 * median(record["step_seconds"] or [0.0]),
-        spec.num_samples,
+        samples.count,  # spec.num_samples unless the scene stopped early
         collisions,
         path,
     )
