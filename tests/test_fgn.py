@@ -486,6 +486,13 @@ def test_the_recipe_table_measures_rows_and_keeps_earlier_ones(trained, tiny_dat
     assert first["how"] == "task=train model=fgn" and second["how"] == "task=train ..."
     md = (tmp_path / "fgn_recipe.md").read_text()
     assert "| first |" in md and "trained by `task=train model=fgn`" in md
+    assert first["waterfall_2_threads"] == ""  # not asked for: blank, '-' in the table
+    recipe(["--row", "first", str(trained), "--waterfall", "--waterfall-steps", "2", *common])
+    with (tmp_path / "fgn_recipe.csv").open() as f:
+        first = {r["label"]: r for r in csv.DictReader(f)}["first"]
+    assert first["waterfall_1_thread"] == first["waterfall_2_threads"] == "complete"
+    assert float(first["waterfall_chamfer_mean_mm"]) >= 0
+    assert "| complete / complete |" in (tmp_path / "fgn_recipe.md").read_text()
 
 
 def test_interrupted_training_resumes_from_its_checkpoint(tiny_data, tmp_path, monkeypatch):
