@@ -433,6 +433,38 @@ def trained(tiny_data, tmp_path_factory):
     return out
 
 
+@pytest.mark.parametrize("ppe", [False, True])
+def test_item_cache_stays_within_its_bound_and_gives_the_same_items(tiny_data, ppe):
+    from lagfluid.data.datasets import PressureSamples
+    from lagfluid.models.fgn.ppe_term import WithPPESystem
+    from lagfluid.models.fgn.trainables import CachedDataset
+
+    def samples():
+        found = PressureSamples(tiny_data, split="train")
+        return WithPPESystem(found) if ppe else found
+
+    free = CachedDataset(samples(), (1.705, False))
+    n = len(free)
+    reads = [free[i] for i in range(n)]
+    assert len(free._items) == n and reads[0].edge_index.dtype == torch.int64
+    assert free._items[0].edge_index.dtype == torch.int32  # kept compact
+    bound = free.cached_bytes // 2
+    bounded = CachedDataset(samples(), (1.705, False), max_bytes=bound)
+    for _ in range(2):  # the first pass fills the cache, the second reads kept and dropped items alike
+        for i in range(n):
+            item = bounded[i]
+            assert set(item.keys()) == set(reads[i].keys())
+            for key in reads[i].keys():
+                value, expected = item[key], reads[i][key]
+                if torch.is_tensor(expected):
+                    assert value.dtype == expected.dtype and torch.equal(value, expected), key
+    assert 0 < len(bounded._items) < n and bounded.cached_bytes <= bound
+    nothing = CachedDataset(samples(), (1.705, False), max_bytes=0)
+    assert torch.equal(nothing[0].edge_index, reads[0].edge_index) and not nothing._items
+    with pytest.raises(ConfigError, match=r"train.cache_gb must be a number of GB >= 0 or null"):
+        build_trainables(_train_cfg(tiny_data, tiny_data / "unused", "train.cache_gb=-1"))
+
+
 def _losses(path):
     with Path(path).open() as f:
         return [float(r["train_loss"]) for r in csv.DictReader(f)]

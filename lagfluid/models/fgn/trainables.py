@@ -157,33 +157,63 @@ class ResampledMaterials:
 
 
 class CachedDataset(torch.utils.data.Dataset):
-    """Keeps every item in memory after its first read (HDF5 reads and boundary pruning paid once).
+    """Keeps items in memory after their first read (HDF5 reads, boundary pruning, graphs paid once).
 
     With ``graph=(radius_l0, fluid_receivers_only)`` each item also keeps its kernel graph
     (``edge_index``, ``edge_dist``), which PyG's batching offsets per sample: the radius search is a large
     share of an iteration (see ``docs/training.md``).
+
+    ``max_bytes`` bounds the memory the cache holds: items are kept in their first-read order until the next
+    would pass it; the others are read (and their graphs searched) again at every draw, giving the same
+    item. Index tensors are kept as int32 (half the bytes; returned as int64). Why a bound: an item holds
+    ~2 MB (advection, kernel graph) to ~10 MB (pressure with its PPE system) on the paper's scenes, so the
+    4,000 training samples of ``data=paper`` would need 13-40 GB (``docs/training.md``).
     """
 
-    def __init__(self, dataset: Any, graph: tuple[float, bool] | None = None) -> None:
+    _COMPACT = ("edge_index",)  # int64 index tensors kept as int32 while cached
+
+    def __init__(
+        self, dataset: Any, graph: tuple[float, bool] | None = None, max_bytes: float | None = None
+    ) -> None:
+        if max_bytes is not None and not max_bytes >= 0:
+            raise ConfigError(f"a cache bound must be >= 0 bytes (train.cache_gb), got {max_bytes!r}")
         self.dataset = dataset
         self.graph = graph
+        self.max_bytes = max_bytes
+        self.cached_bytes = 0
         self._items: dict[int, Data] = {}
 
     def __len__(self) -> int:
         return len(self.dataset)
 
+    def _read(self, idx: int) -> Data:
+        item = self.dataset[idx]
+        if self.graph is not None:
+            radius, fluid_only = self.graph
+            receivers = item.ptype == ParticleType.FLUID if fluid_only else None
+            item.edge_index, item.edge_dist = kernel_graph(
+                item.pos, radius * float(item.l0[0]), None, receivers
+            )
+        return item
+
     def __getitem__(self, idx: int) -> Data:
-        item = self._items.get(idx)
-        if item is None:
-            item = self.dataset[idx]
-            if self.graph is not None:
-                radius, fluid_only = self.graph
-                receivers = item.ptype == ParticleType.FLUID if fluid_only else None
-                item.edge_index, item.edge_dist = kernel_graph(
-                    item.pos, radius * float(item.l0[0]), None, receivers
-                )
-            self._items[idx] = item
-        return item.clone()
+        cached = self._items.get(idx)
+        if cached is not None:
+            item = cached.clone()
+            for key in self._COMPACT:
+                if key in item:
+                    item[key] = item[key].long()
+            return item
+        item = self._read(idx)
+        compact = item.clone()
+        for key in self._COMPACT:
+            if key in compact and compact.num_nodes < 2**31:
+                compact[key] = compact[key].int()
+        size = sum(v.numel() * v.element_size() for _, v in compact.items() if torch.is_tensor(v))
+        if self.max_bytes is None or self.cached_bytes + size <= self.max_bytes:
+            self._items[idx] = compact
+            self.cached_bytes += size
+        return item
 
 
 def _l0(batch: Data) -> float:
@@ -225,6 +255,7 @@ class FGNTrainable:
     def __init__(self, name: str, options: dict[str, Any]) -> None:
         self.name = name
         self.options = options
+        self.cache_bytes: float | None = None  # bound of each split's item cache (train.cache_gb); None: none
 
     def build_network(self) -> nn.Module:
         """A fresh network from :attr:`options`."""
@@ -235,8 +266,8 @@ class FGNTrainable:
         graph = (
             None if self.graph_fluid_only is None else (float(self.options["radius"]), self.graph_fluid_only)
         )
-        train = CachedDataset(self.samples(data_dir, split="train"), graph)
-        valid = CachedDataset(self.samples(data_dir, split="valid"), graph)
+        train = CachedDataset(self.samples(data_dir, split="train"), graph, self.cache_bytes)
+        valid = CachedDataset(self.samples(data_dir, split="valid"), graph, self.cache_bytes)
         return train, valid
 
     def identity(self) -> dict[str, Any]:
@@ -381,7 +412,7 @@ class PressureTrainable(FGNTrainable):
             return super().datasets(data_dir)
         graph = (float(self.options["radius"]), False)
         return tuple(
-            CachedDataset(WithPPESystem(self.samples(data_dir, split=split)), graph)
+            CachedDataset(WithPPESystem(self.samples(data_dir, split=split)), graph, self.cache_bytes)
             for split in ("train", "valid")
         )
 
@@ -418,7 +449,8 @@ def build_trainables(cfg: Any) -> dict[str, FGNTrainable]:
 
     Reads ``cfg.model.<name>`` (network options), ``cfg.model.trains`` (the stages the model owns; FGN all
     three, the Table 5 ablations advection and pressure), ``cfg.train.materials``, ``cfg.solver`` and
-    ``cfg.seed``; ``cfg.train.ppe_weight`` (the pressure net's PPE term, 0 = none).
+    ``cfg.seed``; ``cfg.train.ppe_weight`` (the pressure net's PPE term, 0 = none); ``cfg.train.cache_gb``
+    (the bound of each split's item cache, GB; null or absent: none).
     """
     fmt = cfg.model.get("format", "lagfluid")
     if fmt != "lagfluid":
@@ -438,4 +470,9 @@ def build_trainables(cfg: Any) -> dict[str, FGNTrainable]:
             "pressure", plain(cfg.model.pressure), float(cfg.train.get("ppe_weight") or 0.0)
         ),
     }
+    cache_gb = cfg.train.get("cache_gb")
+    if cache_gb is not None and not (isinstance(cache_gb, (int, float)) and cache_gb >= 0):
+        raise ConfigError(f"train.cache_gb must be a number of GB >= 0 or null (no bound), got {cache_gb!r}")
+    for trainable in stages.values():
+        trainable.cache_bytes = None if cache_gb is None else float(cache_gb) * 1e9
     return {k: stages[k] for k in owned_stages(cfg.model)}
