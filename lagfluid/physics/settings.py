@@ -133,6 +133,8 @@ class SolverSettings:
         list at the Laplacian's 3.1 l0 (MPS and the hybrids that solve the PPE; 7 % faster than 0.3 at 10k,
         ``benchmarks/results/whole_run_mps_dam_medium.md``), 0.3 for the learned stages' 2.1 l0 (FGN;
         4 % faster than 0.15 and 10 % than 0.5 at 40k, ``benchmarks/results/whole_run_fgn_dam_large.md``).
+        The skin changes no result: the lists are exact and keep their pair order (MPS's 1 s dam is
+        bit-identical at 0.15 and 0.3).
         """
         if self.neighbor_skin_fraction is not None:
             return self.neighbor_skin_fraction
