@@ -79,29 +79,42 @@ def _summary(metrics: dict[str, Any], *keys: str) -> float:
     return float(node) if isinstance(node, (int, float)) else math.nan
 
 
-def dam_row(
-    model: str, weights: str, steps: int, threads: int, runs_dir: Path, slug: str, reference_dir: str | None
+def _evaluate(
+    model: str,
+    weights: str,
+    scene: list[str],
+    steps: int,
+    threads: int,
+    out_dir: Path,
+    reference_dir: str | None,
 ) -> dict[str, Any]:
-    """The dam columns of a row: ``task=evaluate`` of ``model`` with ``weights`` for ``steps`` of 2 ms.
+    """Metrics of ``task=evaluate``: ``model`` with ``weights`` on ``scene`` (overrides), ``steps`` of 2 ms.
 
-    ``reference_dir``: the cache of MPS references (None: ``evaluate.reference_dir``'s default).
+    Frames every 40 ms; ``reference_dir``: the cache of MPS references (None: evaluate's default).
     """
     overrides = [
         "task=evaluate",
         f"model={model}",
         f"model.weights={weights}",
-        "scene=dam",
+        *scene,
         f"steps={steps}",
-        "write_every=20",
+        f"write_every={min(20, steps)}",
         f"threads={threads}",
         "progress=false",
         "evaluate.figures=false",
-        f"out_dir={runs_dir / slug}",
+        f"out_dir={out_dir}",
         *([f"evaluate.reference_dir={reference_dir}"] if reference_dir else []),
     ]
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         cfg = compose(config_name="config", overrides=overrides)
-    m = evaluate(cfg)
+    return evaluate(cfg)
+
+
+def dam_row(
+    model: str, weights: str, steps: int, threads: int, runs_dir: Path, slug: str, reference_dir: str | None
+) -> dict[str, Any]:
+    """The dam columns of a row: ``task=evaluate`` of ``model`` with ``weights`` for ``steps`` of 2 ms."""
+    m = _evaluate(model, weights, ["scene=dam"], steps, threads, runs_dir / slug, reference_dir)
     density, density_mps = (
         _summary(m, "density_error", "model", "mean"),
         _summary(m, "density_error", "reference", "mean"),
@@ -140,23 +153,8 @@ def waterfall_columns(
     """
     row: dict[str, Any] = {}
     for t in threads:
-        overrides = [
-            "task=evaluate",
-            f"model={model}",
-            f"model.weights={weights}",
-            "scene=waterfall",
-            "scene.scale=0.5",
-            f"steps={steps}",
-            f"write_every={min(20, steps)}",
-            f"threads={t}",
-            "progress=false",
-            "evaluate.figures=false",
-            f"out_dir={runs_dir / f'{slug}_waterfall_{t}t'}",
-            *([f"evaluate.reference_dir={reference_dir}"] if reference_dir else []),
-        ]
-        with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-            cfg = compose(config_name="config", overrides=overrides)
-        m = evaluate(cfg)
+        out = runs_dir / f"{slug}_waterfall_{t}t"
+        m = _evaluate(model, weights, ["scene=waterfall", "scene.scale=0.5"], steps, t, out, reference_dir)
         key = "waterfall_1_thread" if t == 1 else f"waterfall_{t}_threads"
         row[key] = "complete" if m["complete"] else f"stopped at step {m['steps']}"
         row["waterfall_chamfer_mean_mm"] = _summary(m, "chamfer_mm", "mean")
