@@ -1054,6 +1054,14 @@ PLANTS = [
         "cursor = np.cumsum(hist[::-1], axis=0)[::-1] - hist + f_off[:-1]",
         "tests/test_pair_kernels.py::test_fluid_rows_come_sorted_from_the_transpose_whatever_the_chunks",
     ),
+    # the collision net's homogeneous option (issue 38: a 9 m/s jet through the water fall's wall)
+    (
+        "homogeneous collision net forgets to scale each pair's change by its relative speed",
+        "lagfluid/models/fgn/networks.py",
+        "            change = change * speed",
+        "            change = change * speed.clamp_max(1.0)",
+        "tests/test_fgn.py::test_homogeneous_collision_net_scales_with_the_velocities_as_the_rule",
+    ),
 ]
 
 

@@ -60,11 +60,16 @@ def _model_options(kind, model="fgn"):
 ABLATIONS = ("fgn_gcn", "fgn_sage", "fgn_mlp")
 
 
+# model names of the invariance tests; "fgn-homogeneous": FGN with model.collision.homogeneous=true
+VARIANTS = {"fgn-homogeneous": ("model=fgn", "model.collision.homogeneous=true")}
+
+
 @functools.cache
 def _composed_options(model):
     from omegaconf import OmegaConf
 
-    return OmegaConf.to_container(_compose(f"model={model}").model, resolve=True)
+    overrides = VARIANTS.get(model, (f"model={model}",))
+    return OmegaConf.to_container(_compose(*overrides).model, resolve=True)
 
 
 def _nets(seed=0, model="fgn"):
@@ -118,7 +123,7 @@ def _outputs(nets, data):
     return out
 
 
-@pytest.mark.parametrize("model", ["fgn", *ABLATIONS])
+@pytest.mark.parametrize("model", ["fgn", "fgn-homogeneous", *ABLATIONS])
 def test_networks_are_permutation_invariant(model):
     nets, data = _nets(model=model), _scene(5, seed=1)
     fluid = (data.ptype == ParticleType.FLUID).nonzero().flatten()
@@ -135,7 +140,7 @@ def test_networks_are_permutation_invariant(model):
     torch.testing.assert_close(b["pressure"], a["pressure"][perm], atol=1e-5, rtol=1e-5)
 
 
-@pytest.mark.parametrize("model", ["fgn", *ABLATIONS])
+@pytest.mark.parametrize("model", ["fgn", "fgn-homogeneous", *ABLATIONS])
 def test_networks_are_translation_invariant(model):
     nets, data = _nets(model=model), _scene(5, seed=4)
     moved = data.clone()
@@ -147,7 +152,7 @@ def test_networks_are_translation_invariant(model):
     assert a["advection"].std(dim=0).min() > 0 and a["pressure"].std() > 0
 
 
-@pytest.mark.parametrize("model", ["fgn", *ABLATIONS])
+@pytest.mark.parametrize("model", ["fgn", "fgn-homogeneous", *ABLATIONS])
 def test_two_scenes_batched_equal_each_alone_even_when_they_overlap(model):
     nets = _nets(model=model)
     one, two = _scene(5, seed=5), _scene(4, seed=6, offset=(0.01, 0.0, 0.0))  # same region of space
@@ -264,6 +269,67 @@ def test_collision_net_is_zero_work_without_pairs_and_standardizer_round_trips()
     torch.testing.assert_close(s.inverse(s(x)), x)
     with pytest.raises(ValueError, match="finite"):
         s.set([float("nan"), 0.0], [1.0, 1.0])
+
+
+def _collision_case(scale=1.0):
+    """Two fluid particles 0.5 l0 apart closing head-on, and a wall particle 0.6 l0 below the first.
+
+    Returns ``(vel (3, 3), rel (E, 3), dist (E,), edge_index (2, E))`` with every pair within 0.92 l0 both
+    ways, the wall's velocity zero; ``scale`` multiplies every velocity.
+    """
+    pos = torch.tensor([[0.0, 0.0, 0.0], [0.5, 0.0, 0.0], [0.0, 0.0, -0.6]]) * L0
+    vel = torch.tensor([[3.0, 0.0, -4.0], [-1.0, 2.0, 0.0], [0.0, 0.0, 0.0]]) * scale
+    src = torch.tensor([1, 0, 2, 0, 2, 1])
+    dst = torch.tensor([0, 1, 0, 2, 1, 2])
+    rel = pos[src] - pos[dst]
+    return vel, rel, rel.norm(dim=1), torch.stack([src, dst])
+
+
+def test_homogeneous_collision_net_by_value_with_a_constant_decoder():
+    # Decoder fixed to the constant (1, 0, 0): each pair then adds its relative speed |v_j - v_i| / s_v along
+    # x, times s_dv, whatever the encoder does. By hand (s_v 0.5, s_dv 0.2): particle 0's relative speeds are
+    # 6 (to particle 1: |(-4, 2, 4)|) and 5 (to the wall: |(-3, 0, 4)|), so 0.2 * (6 + 5) / 0.5 = 4.4.
+    net = _nets()["collision"]
+    hom = build_network("collision", {**_composed_options("fgn")["collision"], "homogeneous": True}).eval()
+    hom.load_state_dict(net.state_dict())
+    last = hom.edge_decoder[-1]
+    with torch.no_grad():
+        last.weight.zero_()
+        last.bias.copy_(torch.tensor([1.0, 0.0, 0.0]))
+    vel, rel, dist, edge_index = _collision_case()
+    out = hom.predict(vel, rel, dist, edge_index)
+    # particle 1: 6 (to 0) + |(1, -2, 0)| = sqrt(5) (to the wall); the wall: 5 + sqrt(5)
+    expected = torch.tensor([[11.0, 0, 0], [6.0 + 5**0.5, 0, 0], [5.0 + 5**0.5, 0, 0]]) * 0.2 / 0.5
+    torch.testing.assert_close(out, expected)
+
+
+@pytest.mark.parametrize("scale", [0.01, 3.0, 40.0])
+def test_homogeneous_collision_net_scales_with_the_velocities_as_the_rule(scale):
+    # The MPS collision rule is linear in the velocities: 3x the velocities, 3x the change. The homogeneous
+    # net keeps that at any speed (0.01 to 40x); the authors' encoding saturates (its LayerNorm divides the
+    # speed out), which is why it lets a 9 m/s jet through a wall it stops at 2 m/s.
+    options = {**_composed_options("fgn")["collision"], "homogeneous": True}
+    torch.manual_seed(3)
+    hom = build_network("collision", options).eval()
+    hom.rel_vel.set([0.0], [0.5])
+    plain = build_network("collision", {**options, "homogeneous": False}).eval()
+    plain.load_state_dict(hom.state_dict())
+    vel, rel, dist, edge_index = _collision_case()
+    fast = _collision_case(scale)[0]
+    base = hom(vel, rel, dist, edge_index)
+    assert base.abs().min() > 1e-4
+    torch.testing.assert_close(hom(fast, rel, dist, edge_index), scale * base, rtol=1e-5, atol=1e-7)
+    if scale == 40.0:
+        ratio = plain(fast, rel, dist, edge_index).norm() / plain(vel, rel, dist, edge_index).norm()
+        assert ratio < 10.0  # far from 40: the authors' encoding is bounded
+    at_rest = hom(torch.zeros(3, 3), rel, dist, edge_index)
+    assert torch.equal(at_rest, torch.zeros(3, 3))  # no relative motion, no change (not NaN)
+
+
+def test_a_collision_net_option_that_is_no_boolean_is_named():
+    options = {**_composed_options("fgn")["collision"], "homogeneous": "yes"}
+    with pytest.raises(CheckpointError, match="homogeneous must be true or false, got 'yes'"):
+        build_network("collision", options)
 
 
 def test_unknown_features_and_activations_are_config_errors():

@@ -449,6 +449,12 @@ class CollisionNet(MessagePassing):
     elastic-collision rule depends on. ``s_v``, ``s_dv`` are the ``rel_vel`` and ``target`` scales (1 for
     the authors' weights, which take raw m/s).
 
+    With ``homogeneous`` the encoder sees each pair's relative-velocity *direction* and the decoded change is
+    multiplied by that pair's relative speed ``|v_j - v_i| / s_v``: scaling every velocity by ``c`` scales
+    ``dv`` by ``c`` exactly, as the MPS rule does (it is linear in the velocities). Without it the
+    encoder's LayerNorm divides the speed out, so the change saturates beyond the training speeds (the
+    collision data reach ~4 m/s; the water fall hits its far wall at 7-9 m/s: docs/training.md).
+
     Args:
         radius: graph radius in l0 (authors: 0.92).
         width: edge embedding size (authors: 64).
@@ -456,6 +462,7 @@ class CollisionNet(MessagePassing):
         layers: edge message layers (authors: 1).
         act: activation of the encoder and decoder (authors: ReLU).
         message_act: activation inside the edge messages (authors: identity).
+        homogeneous: per-pair output scaled by the pair's relative speed (above; authors: false).
 
     Shapes: ``vel`` (N, 3), ``rel`` (E, 3) ``x_j - x_i``, ``dist`` (E,), ``edge_index`` (2, E) -> (N, 3).
     """
@@ -471,9 +478,13 @@ class CollisionNet(MessagePassing):
         layers: int = 1,
         act: str = "relu",
         message_act: str = "silu",
+        homogeneous: bool = False,
     ) -> None:
         super().__init__(aggr="add", flow="source_to_target")
+        if not isinstance(homogeneous, bool):
+            raise CheckpointError(f"collision network: homogeneous must be true or false, got {homogeneous!r}")
         self.radius = float(radius)
+        self.homogeneous = homogeneous
         self.rel_vel = Standardizer(1)  # only the scale is used: relative velocities stay centred
         self.target = Standardizer(1)
         self.edge_encoder = make_mlp([6, encoder_hidden, width, width], act, layer_norm=True)
@@ -489,11 +500,17 @@ class CollisionNet(MessagePassing):
             return vel.new_zeros(n, 3)
         src, dst = edge_index
         rel_vel = (vel.index_select(0, src) - vel.index_select(0, dst)) / self.rel_vel.std
+        if self.homogeneous:
+            speed = torch.linalg.vector_norm(rel_vel, dim=1, keepdim=True)  # (E, 1)
+            rel_vel = rel_vel / speed.clamp_min(torch.finfo(rel_vel.dtype).tiny)  # at rest: 0, not NaN
         direction = rel / dist.clamp_min(1e-12).unsqueeze(1)
         e = self.edge_encoder(torch.cat([rel_vel, direction], dim=1))
         for norm, layer in self.mp_layers:
             e = layer(norm(e), edge_index, n)
-        return self.propagate(edge_index, e=self.edge_decoder(e), size=(n, n))
+        change = self.edge_decoder(e)
+        if self.homogeneous:
+            change = change * speed
+        return self.propagate(edge_index, e=change, size=(n, n))
 
     def message(self, e: Tensor) -> Tensor:
         """Each edge's decoded velocity change."""
