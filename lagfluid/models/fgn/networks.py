@@ -482,7 +482,9 @@ class CollisionNet(MessagePassing):
     ) -> None:
         super().__init__(aggr="add", flow="source_to_target")
         if not isinstance(homogeneous, bool):
-            raise CheckpointError(f"collision network: homogeneous must be true or false, got {homogeneous!r}")
+            raise CheckpointError(
+                f"collision network: homogeneous must be true or false, got {homogeneous!r}"
+            )
         self.radius = float(radius)
         self.homogeneous = homogeneous
         self.rel_vel = Standardizer(1)  # only the scale is used: relative velocities stay centred
