@@ -107,6 +107,50 @@ def test_a_rerun_resumes_and_regenerates_nothing(tiny_data, tmp_path):
     assert (scene.stat().st_mtime_ns, _sha(out / "onpolicy" / "round1" / "pressure.pt")) == stamp
 
 
+def test_rounds_start_from_a_folder_of_weights_and_train_nothing_before(tiny_data, tmp_path):
+    start, out = tmp_path / "start", tmp_path / "run"
+    train(_train_cfg(tiny_data, start))  # e.g. the shipped weights or another run's
+    cfg = _train_cfg(
+        tiny_data, out, "train.onpolicy.rounds=1", f"train.onpolicy.start_from={start}",
+        "train.onpolicy.trainables=[advection,pressure]",
+    )  # fmt: skip
+    train(cfg)
+    r1 = out / "onpolicy" / "round1"
+    assert sorted(p.name for p in out.glob("*.pt")) == []  # no one-step training in out_dir
+    networks = _policy_networks(r1 / "data")
+    assert {name: networks[name] for name in ("advection", "collision", "pressure")} == {
+        name: _sha(start / f"{name}.pt") for name in ("advection", "collision", "pressure")
+    }
+    for name in ("advection", "pressure"):
+        identity = json.loads(read_checkpoint(r1 / f"{name}.pt")["meta"]["identity"])
+        assert identity["init_from"] == str(start.resolve()) and identity["iterations"] == 3
+    # the collision net, not fine-tuned, is the start folder's beside them
+    mine, theirs = read_checkpoint(r1 / "collision.pt"), read_checkpoint(start / "collision.pt")
+    for key, value in theirs["state_dict"].items():
+        assert torch.equal(value, mine["state_dict"][key]), key
+
+
+def test_rounds_refuse_a_start_folder_that_is_not_there_or_lacks_a_network(tiny_data, tmp_path):
+    missing = tmp_path / "nowhere"
+    with pytest.raises(ConfigError, match=rf"train.onpolicy.start_from={missing} is not a folder"):
+        train(
+            _train_cfg(
+                tiny_data, tmp_path / "run", "train.onpolicy.rounds=1", f"train.onpolicy.start_from={missing}"
+            )
+        )
+    half = tmp_path / "half"
+    train(_train_cfg(tiny_data, half, "stage=advection"))
+    with pytest.raises(
+        ConfigError, match=r"collision.pt, pressure.pt are not in .*half; set train.onpolicy.start_from"
+    ):
+        train(
+            _train_cfg(
+                tiny_data, tmp_path / "run", "train.onpolicy.rounds=1", f"train.onpolicy.start_from={half}"
+            )
+        )
+    assert not (tmp_path / "run" / "onpolicy").exists()
+
+
 def test_rounds_refuse_a_command_that_does_not_remake_the_datasets_scenes(tiny_data, tmp_path):
     cfg = _train_cfg(tiny_data, tmp_path / "run", "train.onpolicy.rounds=1", "scene=dam")
     with pytest.raises(ConfigError, match=r"scene=dam; the dataset's is scene=random"):

@@ -6,8 +6,9 @@ A network trained on the solver's trajectories meets, in its own rollouts, state
 
 1. ``<out_dir>/onpolicy/round<k>/data``: the training dataset's own scenes (same scene, seeds, steps,
    materials) rolled out by the run's model with its networks of round k-1 (round 0: the one-step trained
-   ones in ``out_dir``), each sample labelled by the exact MPS stage at the model's own state
-   (``data.policy=model``, :mod:`lagfluid.tasks.generate.policy`);
+   ones in ``out_dir``, or ``train.onpolicy.start_from``'s: a folder of the model's weights, shipped or
+   another run's, and then nothing is trained in ``out_dir`` first), each sample labelled by the exact MPS
+   stage at the model's own state (``data.policy=model``, :mod:`lagfluid.tasks.generate.policy`);
 2. each of ``train.onpolicy.trainables`` (the pressure net by default) fine-tuned on it (with
    ``train.onpolicy.aggregate``: on rounds 1..k's data together) from its round k-1 weights:
    ``train.onpolicy.iterations`` at ``train.onpolicy.lr_start`` decaying to ``train.lr_end``, PPE term
@@ -55,6 +56,8 @@ class OnPolicy:
             of round k's alone.
         jobs: scenes generated at once, each in its own one-thread process (one per core pays: the
             solver's step scales poorly over threads).
+        start_from: a folder of the model's weights for round 0 (each of its trainables' ``<name>.pt``);
+            None: the run's one-step training in ``out_dir``.
     """
 
     rounds: int
@@ -64,6 +67,7 @@ class OnPolicy:
     ppe_weight: float
     aggregate: bool = False
     jobs: int = 1
+    start_from: Path | None = None
 
     @classmethod
     def from_config(cls, cfg: DictConfig, model_trainables: Sequence[str]) -> OnPolicy:
@@ -71,7 +75,7 @@ class OnPolicy:
 
         Raises:
             ConfigError: a negative or fractional number of rounds or iterations, a learning rate <= 0,
-                or a trainable the model does not have.
+                a trainable the model does not have, or a ``start_from`` that is not a folder.
         """
         section = cfg.train.get("onpolicy") or {}
         rounds, iterations = section.get("rounds", 0) or 0, section.get("iterations", 1)
@@ -89,6 +93,9 @@ class OnPolicy:
         lr_start = float(section.get("lr_start") or cfg.train.lr_start)
         if not lr_start > 0:
             raise ConfigError(f"train.onpolicy.lr_start must be > 0, got {lr_start}")
+        start = section.get("start_from")
+        if start is not None and rounds and not Path(str(start)).is_dir():
+            raise ConfigError(f"train.onpolicy.start_from={start} is not a folder of the model's weights")
         return cls(
             rounds,
             names,
@@ -97,7 +104,14 @@ class OnPolicy:
             float(section.get("ppe_weight") or 0.0),
             bool(section.get("aggregate", False)),
             int(jobs),
+            None if start is None else Path(str(start)),
         )
+
+    def weights(self, out_dir: Path, k: int) -> Path:
+        """The folder of round ``k``'s weights (round 0: ``start_from`` or ``out_dir``)."""
+        if k == 0:
+            return self.start_from or out_dir
+        return round_dir(out_dir, k)
 
 
 def round_dir(out_dir: Path, k: int, folder: str = "onpolicy") -> Path:
@@ -198,26 +212,34 @@ def run_rounds(
     Args:
         cfg: the ``task=train`` config.
         settings: its ``train.onpolicy`` (:meth:`OnPolicy.from_config`, rounds >= 1).
-        out_dir: the run's folder, holding each of the model's one-step trained ``<name>.pt``.
+        out_dir: the run's folder, holding each of the model's one-step trained ``<name>.pt`` (unless
+            ``settings.start_from`` holds round 0's).
         train_one: :func:`lagfluid.tasks.train.train_one` (passed in: this module is one of its callers').
 
     Returns:
         the last round's folder (a complete ``model.weights``).
 
     Raises:
-        ConfigError: a network of the model missing from ``out_dir``, or a command that does not
+        ConfigError: a network of the model missing from round 0's folder, or a command that does not
             regenerate the dataset's scenes (:func:`check_same_scenes`).
     """
     model = str(cfg.model.name)
     owned = list(get_trainables(model, cfg))
-    missing = [name for name in owned if not (out_dir / f"{name}.pt").is_file()]
+    start = settings.weights(out_dir, 0)
+    missing = [name for name in owned if not (start / f"{name}.pt").is_file()]
     if missing:
+        files = f"{', '.join(n + '.pt' for n in missing)} {'is' if len(missing) == 1 else 'are'}"
+        hint = (
+            "set train.onpolicy.start_from to a folder that has them"
+            if settings.start_from
+            else "train stage=all (or those stages) first"
+        )
         raise ConfigError(
             f"train.onpolicy.rounds={settings.rounds}: the rounds roll out the run's own model, but "
-            f"{', '.join(missing)}.pt is not in {out_dir}; train stage=all (or those stages) first"
+            f"{files} not in {start}; {hint}"
         )
     for k in range(1, settings.rounds + 1):
-        previous, here = round_dir(out_dir, k - 1), round_dir(out_dir, k)
+        previous, here = settings.weights(out_dir, k - 1), settings.weights(out_dir, k)
         data_dir = here / "data"
         here.mkdir(parents=True, exist_ok=True)
         log.info(
@@ -244,6 +266,6 @@ def run_rounds(
         # the model's other networks beside them, once: their bytes are in the next round's data fingerprint
         others = [n for n in owned if n not in settings.trainables and not (here / f"{n}.pt").is_file()]
         if others:
-            export_weights(out_dir, here, kinds=others)
+            export_weights(start, here, kinds=others)
     log.info("on-policy rounds done: %s", round_dir(out_dir, settings.rounds))
     return round_dir(out_dir, settings.rounds)

@@ -35,7 +35,8 @@ it, exactly as above.
 **On-policy rounds.** ``train.onpolicy.rounds=R`` (with ``stage=all``, or a stage in
 ``train.onpolicy.trainables``) then fine-tunes those networks on R rounds of the model's own rollouts
 labelled by the exact solver (DAgger; :mod:`lagfluid.tasks.onpolicy_rounds`); the last round's folder holds
-the run's final networks.
+the run's final networks. With ``train.onpolicy.start_from=DIR`` the rounds start from those weights (the
+shipped ones, another run's) and nothing is trained in ``out_dir`` first.
 
 **DAgger rounds for end-to-end models.** ``train.dagger.rounds=R`` (GNS: ``train=gns_dagger``) then rolls
 the model out on the training scenes, labels its own states by one MPS model step and fine-tunes it on the
@@ -724,7 +725,10 @@ def _train_in(
     """The training of :func:`train` once its trainables' files in ``out_dir`` are locked."""
     out_dir.mkdir(parents=True, exist_ok=True)
     summaries = []
-    from_elsewhere = dagger.rounds > 0 and dagger.start_from is not None  # the rounds start from those
+    # the rounds start from those weights: nothing to train here first
+    from_elsewhere = (dagger.rounds > 0 and dagger.start_from is not None) or (
+        onpolicy.rounds > 0 and onpolicy.start_from is not None and with_rounds
+    )
     for name in [] if from_elsewhere else names:
         summaries.append(train_one(cfg, trainables[name], out_dir, deadline))
         if summaries[-1].get("stopped"):  # the cap is the run's: the later trainables and the export wait
