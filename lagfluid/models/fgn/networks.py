@@ -310,14 +310,24 @@ class AdvectionNet(nn.Module):
 
     Nodes are the fluid particles and their neighbours within ``radius``; only fluid rows are used.
 
+    With ``linear_in_viscosity`` the network learns only the viscous term's operator, as the MPS rule
+    ``a = g + nu lap(v)`` (paper eq. 3) has it: :meth:`predict` returns ``g + nu * L`` with ``L`` the
+    network's de-standardised output (1/(m s), trained on the MPS Laplacian of the velocities), so gravity
+    is exact and the viscous part is linear in ``nu``. Why: one network over ``g`` in [1, 100] m/s^2 and
+    ``nu`` in [1e-6, 0.1] m^2/s standardises its output by the whole range (std ~5-20 m/s^2), so at water
+    (``nu`` = 1e-6, viscous term ~1e-4 m/s^2) its error was 7% of ``g`` where the authors' water-only net's
+    is 2e-5 (``benchmarks/results/fgn_recipe.md``, "adv. nMAE water"); linear in ``nu`` it is exact in the
+    limit of no viscosity.
+
     Args:
         features: per-node inputs, names from :data:`ADVECTION_FEATURES`.
         radius: graph radius in l0 (authors: 0.6 x 3.1 = 1.86).
         gravity_scale: m/s^2 dividing ``g`` for the ``gravity`` input.
+        linear_in_viscosity: learn ``L`` in ``a = g + nu L`` (above) instead of ``a`` itself (paper eq. 11).
         **net: :class:`NodeNet` options (width, layers, act, aggregation, hidden sizes).
 
     Buffers: ``speed`` (|v|), ``vel_scale`` (std of |v|), ``log_viscosity``, ``target`` (3 components of
-    the acceleration, m/s^2).
+    the acceleration, m/s^2; with ``linear_in_viscosity`` of ``L``, 1/(m s)).
     """
 
     kind = "advection"
@@ -327,9 +337,15 @@ class AdvectionNet(nn.Module):
         features: Sequence[str] = ("vel_dir", "speed", "vel", "is_fluid", "gravity", "viscosity"),
         radius: float = 1.86,
         gravity_scale: float = 9.8065,
+        linear_in_viscosity: bool = False,
         **net: Any,
     ) -> None:
         super().__init__()
+        if not isinstance(linear_in_viscosity, bool):
+            raise CheckpointError(
+                f"advection network: linear_in_viscosity must be true or false, got {linear_in_viscosity!r}"
+            )
+        self.linear_in_viscosity = linear_in_viscosity
         self.features = _check_features(features, ADVECTION_FEATURES, "advection")
         self.radius = float(radius)
         self.gravity_scale = float(gravity_scale)
@@ -360,9 +376,22 @@ class AdvectionNet(nn.Module):
         """Standardised acceleration (N, 3) of every node (the loss is taken on fluid rows)."""
         return self.net(self.node_features(vel, is_fluid, gravity, viscosity), adj)
 
-    def predict(self, *args: Tensor) -> Tensor:
+    def predict(
+        self, vel: Tensor, is_fluid: Tensor, gravity: Tensor, viscosity: Tensor, adj: Tensor
+    ) -> Tensor:
         """Acceleration in m/s^2 (N, 3); same arguments as :meth:`forward`."""
-        return self.target.inverse(self.forward(*args))
+        out = self.target.inverse(self.forward(vel, is_fluid, gravity, viscosity, adj))
+        if self.linear_in_viscosity:
+            return gravity.to(out.dtype) + viscosity.to(out.dtype).unsqueeze(1) * out
+        return out
+
+    def label(self, acceleration: Tensor, laplacian: Tensor | None) -> Tensor:
+        """What the network's de-standardised output is trained on (Nf, 3).
+
+        ``acceleration`` (m/s^2), or with ``linear_in_viscosity`` ``laplacian``: the MPS Laplacian of the
+        velocities (1/(m s)).
+        """
+        return laplacian if self.linear_in_viscosity else acceleration
 
 
 class PressureNet(nn.Module):

@@ -119,3 +119,37 @@ def load_original_network(kind: str, options: dict[str, Any], directory: str | o
         _set(net.density, scalers["dns_scaler"])
         _set(net.target, scalers["prs_scaler"])
     return net.eval()
+
+
+# the trainables' statistics (meta["stats"]) and the standardizers that hold them, per network
+_STAT_MODULES = {
+    "advection": {"speed": "speed", "target": "target"},
+    "pressure": {"speed": "speed", "density": "density", "target": "target"},
+}
+
+
+def original_checkpoint(kind: str, options: dict[str, Any], directory: str | os.PathLike) -> dict[str, Any]:
+    """The authors' ``kind`` network as a lagfluid checkpoint of ``model=fgn`` (fine-tuning, mixing).
+
+    ``options``: their architecture (``conf/model/fgn_original.yaml``'s section ``kind``). The result is a
+    :func:`~lagfluid.models.checkpoint.save_checkpoint` payload whose statistics are their scalers, so a
+    ``train.init_from`` or ``train.onpolicy.start_from`` folder holding it fine-tunes their network, and
+    ``model=fgn`` runs it (a checkpoint's own options win over the config's).
+
+    Raises:
+        CheckpointError: see :func:`load_original_network`; ``kind`` is their collision net, whose raw
+            m/s encoding is not lagfluid's (``model.collision``): there is nothing to convert it to.
+    """
+    from lagfluid.models.checkpoint import network_payload
+
+    if kind not in _STAT_MODULES:
+        raise CheckpointError(
+            f"the authors' {kind} net has no lagfluid checkpoint form; convert advection or pressure"
+        )
+    net = load_original_network(kind, options, directory)
+    stats = {  # as the trainables' fit_statistics write them: scalars, or lists per component
+        name: [getattr(net, module).mean.squeeze().tolist(), getattr(net, module).std.squeeze().tolist()]
+        for name, module in _STAT_MODULES[kind].items()
+    }
+    meta = {"stats": stats, "converted_from": str(Path(directory) / f"{FILES[kind]}.npz")}
+    return network_payload(net, kind, options, 0, meta, model="fgn")

@@ -151,7 +151,8 @@ class ResampledMaterials:
         g = self._draw(*self.gravity)
         nu = self._draw(*self.viscosity)
         gravity = torch.tensor([[0.0, 0.0, -g]])
-        item.y = gravity + nu * self.laplacian(idx, item)
+        item.laplacian = self.laplacian(idx, item)
+        item.y = gravity + nu * item.laplacian
         item.gravity, item.viscosity = gravity, torch.tensor([nu], dtype=torch.float32)
         return item
 
@@ -282,6 +283,11 @@ class FGNTrainable:
         return kernel_graph(batch.pos, radius, batch.batch, receivers)
 
 
+def _advection_label(net: nn.Module, item: Data) -> Tensor:
+    """(Nf, 3) what ``net``'s output is trained on (:meth:`AdvectionNet.label`): ``y``, or the Laplacian."""
+    return net.label(item.y, item.laplacian if net.linear_in_viscosity else None)
+
+
 class AdvectionTrainable(FGNTrainable):
     """The advection net: ``[v^n, type, g, nu]`` on the kernel graph -> ``a`` (fluid rows).
 
@@ -314,6 +320,11 @@ class AdvectionTrainable(FGNTrainable):
         """Cached samples; with ``materials.resample`` fresh g and nu per draw (fixed per item in valid)."""
         train, valid = super().datasets(data_dir)
         m = self.materials
+        if self.options.get("linear_in_viscosity") and not m.get("resample"):
+            raise ConfigError(
+                "model.advection.linear_in_viscosity=true trains on the MPS Laplacian of each sample's "
+                "velocities, which train.materials.resample=true computes; it is false"
+            )
         if m.get("resample"):
             ranges = (m["gravity"], m["viscosity"], bool(m["log_uniform"]), self.settings)
             train = ResampledMaterials(train, *ranges, seed=self.seed)
@@ -323,7 +334,7 @@ class AdvectionTrainable(FGNTrainable):
     def fit_statistics(self, net: nn.Module, items: Sequence[Data]) -> dict[str, Any]:
         """Speed, target (per component) and log10 viscosity."""
         net.speed.set(*_mean_std(_fluid_speed(items)))
-        net.target.set(*_mean_std(torch.cat([it.y for it in items])))
+        net.target.set(*_mean_std(torch.cat([_advection_label(net, it) for it in items])))
         log_nu = torch.log10(torch.cat([it.viscosity for it in items]).double().clamp_min(1e-30))
         net.log_viscosity.set(*_mean_std(log_nu.unsqueeze(1)))
         return {
@@ -348,7 +359,7 @@ class AdvectionTrainable(FGNTrainable):
             _dtype(net),
             batch.batch,
         )
-        return net(*inputs)[fluid], net.target(batch.y)
+        return net(*inputs)[fluid], net.target(_advection_label(net, batch))
 
 
 class CollisionTrainable(FGNTrainable):
