@@ -25,7 +25,7 @@ from lagfluid.models.checkpoint import CheckpointError, network_payload, read_ch
 from lagfluid.models.fgn import networks as fgn_mod
 from lagfluid.models.fgn.learned_stages import compact_nodes
 from lagfluid.models.fgn.networks import build_network, load_network
-from lagfluid.models.fgn.original import load_original_network
+from lagfluid.models.fgn.original import load_original_network, original_checkpoint
 from lagfluid.models.fgn.simulator import AUTHORS_WEIGHTS
 from lagfluid.models.fgn.trainables import build_trainables
 from lagfluid.run import CONF_DIR
@@ -61,8 +61,12 @@ def _model_options(kind, model="fgn"):
 ABLATIONS = ("fgn_gcn", "fgn_sage", "fgn_mlp")
 
 
-# model names of the invariance tests; "fgn-homogeneous": FGN with model.collision.homogeneous=true
-VARIANTS = {"fgn-homogeneous": ("model=fgn", "model.collision.homogeneous=true")}
+# model names of the invariance tests; "fgn-homogeneous": FGN with model.collision.homogeneous=true;
+# "fgn-linear-nu": with model.advection.linear_in_viscosity=true
+VARIANTS = {
+    "fgn-homogeneous": ("model=fgn", "model.collision.homogeneous=true"),
+    "fgn-linear-nu": ("model=fgn", "model.advection.linear_in_viscosity=true"),
+}
 
 
 @functools.cache
@@ -111,6 +115,7 @@ def _scene(n, seed, offset=(0.0, 0.0, 0.0)):
         viscosity=torch.tensor([1e-3]),
         l0=torch.tensor([L0]),
         y=torch.zeros(nf, 3),
+        laplacian=torch.zeros(nf, 3),  # the label of model.advection.linear_in_viscosity (not an input)
     )
 
 
@@ -124,7 +129,7 @@ def _outputs(nets, data):
     return out
 
 
-@pytest.mark.parametrize("model", ["fgn", "fgn-homogeneous", *ABLATIONS])
+@pytest.mark.parametrize("model", ["fgn", "fgn-homogeneous", "fgn-linear-nu", *ABLATIONS])
 def test_networks_are_permutation_invariant(model):
     nets, data = _nets(model=model), _scene(5, seed=1)
     fluid = (data.ptype == ParticleType.FLUID).nonzero().flatten()
@@ -141,7 +146,7 @@ def test_networks_are_permutation_invariant(model):
     torch.testing.assert_close(b["pressure"], a["pressure"][perm], atol=1e-5, rtol=1e-5)
 
 
-@pytest.mark.parametrize("model", ["fgn", "fgn-homogeneous", *ABLATIONS])
+@pytest.mark.parametrize("model", ["fgn", "fgn-homogeneous", "fgn-linear-nu", *ABLATIONS])
 def test_networks_are_translation_invariant(model):
     nets, data = _nets(model=model), _scene(5, seed=4)
     moved = data.clone()
@@ -153,7 +158,7 @@ def test_networks_are_translation_invariant(model):
     assert a["advection"].std(dim=0).min() > 0 and a["pressure"].std() > 0
 
 
-@pytest.mark.parametrize("model", ["fgn", "fgn-homogeneous", *ABLATIONS])
+@pytest.mark.parametrize("model", ["fgn", "fgn-homogeneous", "fgn-linear-nu", *ABLATIONS])
 def test_two_scenes_batched_equal_each_alone_even_when_they_overlap(model):
     nets = _nets(model=model)
     one, two = _scene(5, seed=5), _scene(4, seed=6, offset=(0.01, 0.0, 0.0))  # same region of space
@@ -333,6 +338,67 @@ def test_a_collision_net_option_that_is_no_boolean_is_named():
         build_network("collision", options)
 
 
+def _linear_nu_net():
+    """FGN's advection net with ``linear_in_viscosity``; decoder fixed to the constant (1, 0, -2)."""
+    options = {**_composed_options("fgn")["advection"], "linear_in_viscosity": True}
+    net = build_network("advection", options).eval()
+    net.speed.set([0.3], [0.4])
+    net.log_viscosity.set([-3.0], [1.0])
+    net.target.set([0.5, 0.0, 0.0], [2.0, 3.0, 4.0])
+    last = net.net.node_decoder[-1]
+    with torch.no_grad():
+        last.weight.zero_()
+        last.bias.copy_(torch.tensor([1.0, 0.0, -2.0]))
+    return net
+
+
+def _advection_case(nu):
+    """Two fluid particles and a wall particle, all within each other's kernel radius."""
+    vel = torch.tensor([[1.0, 0.0, 0.0], [0.0, -2.0, 0.0], [0.0, 0.0, 0.0]])
+    is_fluid = torch.tensor([True, True, False])
+    gravity = torch.tensor([[0.0, 0.0, -9.8]]).expand(3, 3)
+    adj = torch.tensor([[0.0, 0.5, 0.2], [0.5, 0.0, 0.3], [0.0, 0.0, 0.0]]).to_sparse_csr()
+    return vel, is_fluid, gravity, torch.full((3,), nu), adj
+
+
+def test_advection_net_linear_in_viscosity_by_value_with_a_constant_decoder():
+    # The decoder's constant (1, 0, -2) de-standardised: L = (0.5 + 2 * 1, 0, 0 - 4 * 2) = (2.5, 0, -8)
+    # 1/(m s); a = g + nu L: at nu = 1e-3, (0.0025, 0, -9.808); at nu = 0, g exactly (water's limit).
+    net = _linear_nu_net()
+    acc = net.predict(*_advection_case(1e-3))
+    torch.testing.assert_close(acc, torch.tensor([[0.0025, 0.0, -9.808]]).expand(3, 3))
+    assert torch.equal(net.predict(*_advection_case(0.0)), torch.tensor([[0.0, 0.0, -9.8]]).expand(3, 3))
+    # the same weights without the option predict the de-standardised output itself: a = L
+    plain = build_network("advection", {**_composed_options("fgn")["advection"]}).eval()
+    plain.load_state_dict(net.state_dict())
+    torch.testing.assert_close(
+        plain.predict(*_advection_case(1e-3)), torch.tensor([[2.5, 0.0, -8.0]]).expand(3, 3)
+    )
+
+
+@pytest.mark.parametrize("factor", [1e-3, 10.0])
+def test_advection_net_linear_in_viscosity_scales_the_viscous_part_with_nu(factor):
+    # The MPS rule a = g + nu lap(v): nu times 10, the viscous part times 10, whatever the weights
+    options = {**_composed_options("fgn")["advection"], "linear_in_viscosity": True}
+    options["features"] = ["vel_dir", "speed", "vel", "is_fluid"]  # the net sees neither g nor nu
+    torch.manual_seed(5)
+    net = build_network("advection", options).eval()
+    net.speed.set([0.3], [0.4])
+    net.target.set([0.5, 0.0, 0.0], [2.0, 3.0, 4.0])
+    g = torch.tensor([0.0, 0.0, -9.8])
+    base = net.predict(*_advection_case(0.01)) - g
+    assert base.abs().min() > 1e-4
+    torch.testing.assert_close(
+        net.predict(*_advection_case(0.01 * factor)) - g, factor * base, rtol=1e-4, atol=1e-6
+    )
+
+
+def test_an_advection_net_option_that_is_no_boolean_is_named():
+    options = {**_composed_options("fgn")["advection"], "linear_in_viscosity": 1}
+    with pytest.raises(CheckpointError, match="linear_in_viscosity must be true or false, got 1"):
+        build_network("advection", options)
+
+
 def test_unknown_features_and_activations_are_config_errors():
     with pytest.raises(ConfigError, match=r"unknown.*'spin'"):
         fgn_mod.AdvectionNet(features=["vel", "spin"])
@@ -401,6 +467,30 @@ def test_authors_weights_load_with_their_parameter_counts(authors_weights):
     assert counts == {"advection": 17299, "collision": 21443 - 6272, "pressure": 16193}
     net = load_original_network("advection", _model_options("advection", "fgn_original"), authors_weights)
     assert net.target.mean[2].item() == pytest.approx(-9.8065, abs=1e-4)  # their acc_scaler: gravity
+
+
+@pytest.mark.parametrize("kind", ["advection", "pressure"])
+def test_the_authors_nets_as_lagfluid_checkpoints_are_their_nets(authors_weights, tmp_path, kind):
+    # the form train.init_from / train.onpolicy.start_from and model=fgn read: same weights and scalers
+    options = _model_options(kind, "fgn_original")
+    save_checkpoint(tmp_path / f"{kind}.pt", original_checkpoint(kind, options, authors_weights))
+    net, ckpt = load_network(tmp_path / f"{kind}.pt", kind)
+    theirs = load_original_network(kind, options, authors_weights)
+    assert ckpt["options"] == options and ckpt["model"] == "fgn"
+    mine = net.state_dict()
+    assert mine.keys() == theirs.state_dict().keys()
+    for key, value in theirs.state_dict().items():
+        assert torch.equal(mine[key], value), key
+    stats = read_checkpoint(tmp_path / f"{kind}.pt")["meta"]["stats"]
+    if kind == "pressure":  # their prs_scaler: mean 8,699 Pa, variance 1.247e9 Pa^2
+        assert stats["target"] == pytest.approx([8699.279, 1246911945.28**0.5], rel=1e-6)
+    else:  # their acc_scaler: gravity in the mean
+        assert stats["target"][0][2] == pytest.approx(-9.8065, abs=1e-4)
+
+
+def test_the_authors_collision_net_has_no_lagfluid_checkpoint_form(authors_weights):
+    with pytest.raises(CheckpointError, match="the authors' collision net has no lagfluid checkpoint form"):
+        original_checkpoint("collision", _model_options("collision", "fgn_original"), authors_weights)
 
 
 def test_authors_weights_that_do_not_fit_the_config_are_named(authors_weights):
@@ -487,6 +577,25 @@ def _train_cfg(data_dir, out_dir, *overrides, iterations=40, model="fgn"):
         "train.stat_samples=8",
         *overrides,
     )
+
+
+def test_linear_in_viscosity_trains_on_the_mps_laplacian_of_each_sample(tiny_data):
+    base = ("task=train", "model=fgn", "data=tiny", f"data.out_dir={tiny_data}")
+    cfg = _compose(*base, "model.advection.linear_in_viscosity=true")
+    trainable = build_trainables(cfg)["advection"]
+    train_set, _ = trainable.datasets(Path(tiny_data))
+    item = train_set[0]
+    torch.testing.assert_close(item.y, item.gravity + item.viscosity * item.laplacian)  # a = g + nu lap(v)
+    net = trainable.build_network()
+    trainable.fit_statistics(net, [train_set[i] for i in range(3)])
+    _, target = trainable.predict(net, Batch.from_data_list([train_set[0]]))
+    torch.testing.assert_close(target, net.target(train_set[0].laplacian))
+    assert not torch.allclose(target, net.target(train_set[0].y))
+    fixed = build_trainables(
+        _compose(*base, "model.advection.linear_in_viscosity=true", "train.materials.resample=false")
+    )
+    with pytest.raises(ConfigError, match="linear_in_viscosity=true trains on the MPS Laplacian"):
+        fixed["advection"].datasets(Path(tiny_data))
 
 
 @pytest.fixture(scope="module")
