@@ -46,15 +46,26 @@ RESULTS = Path(__file__).resolve().parent / "results"
 # The paper's Table 4 test materials: |g| in m/s^2 and nu in m^2/s (drawn log-uniformly here).
 TABLE4_GRAVITY, TABLE4_VISCOSITY = (1.0, 100.0), (1.0e-4, 0.1)
 HELD_OUT = "held-out g in [1, 100], nu in [1e-4, 0.1]"
+WATER_GRAVITY, WATER_VISCOSITY = (
+    (9.8065, 9.8065),
+    (1.0e-6, 1.0e-6),
+)  # the scenes' own: g + nu lap(v) as stored
 
 
-def _physical(net: torch.nn.Module, kind: str, pred: torch.Tensor, target: torch.Tensor) -> tuple:
-    """Undo the standardisation of the trainable's ``predict`` outputs: (prediction, target) in SI units."""
+def _physical(net: torch.nn.Module, kind: str, pred: torch.Tensor, target: torch.Tensor, item: Any) -> tuple:
+    """Undo the standardisation of the trainable's ``predict`` outputs: (prediction, target) in SI units.
+
+    An advection net ``linear_in_viscosity`` is trained on the Laplacian ``L``: both become the acceleration
+    ``g + nu L`` of ``item`` (its gravity (1, 3), its viscosity (1,)), so every net is scored on ``a``.
+    """
     if kind == "collision":  # scaled only: a velocity change has no offset
         return pred * net.target.std, target * net.target.std
     if kind == "pressure":  # (M,) <-> the (M, 1) the standardizer holds
         return (net.target.inverse(t.unsqueeze(1)).squeeze(1) for t in (pred, target))
-    return net.target.inverse(pred), net.target.inverse(target)
+    pred, target = net.target.inverse(pred), net.target.inverse(target)
+    if getattr(net, "linear_in_viscosity", False):
+        return (item.gravity + item.viscosity * t for t in (pred, target))
+    return pred, target
 
 
 def score(task: Any, net: torch.nn.Module, items: list) -> dict[str, float]:
@@ -63,7 +74,7 @@ def score(task: Any, net: torch.nn.Module, items: list) -> dict[str, float]:
     values: dict[str, list[float]] = {}
     with torch.no_grad():
         for item in items:
-            pred, target = _physical(net, kind, *task.predict(net, Batch.from_data_list([item])))
+            pred, target = _physical(net, kind, *task.predict(net, Batch.from_data_list([item])), item)
             if kind == "pressure":
                 p, y = pred.double().numpy(), target.double().numpy()
                 values.setdefault("rel_l2", []).append(float(np.linalg.norm(p - y) / np.linalg.norm(y)))
@@ -111,7 +122,12 @@ def one_step_rows(
             held_out = ResampledMaterials(
                 samples, TABLE4_GRAVITY, TABLE4_VISCOSITY, True, settings, seed, fixed=True
             )
-            variants = {HELD_OUT: held_out, "water (stored labels)": samples}
+            water = samples  # the stored labels; a net trained on the Laplacian needs it computed
+            if getattr(net, "linear_in_viscosity", False):
+                water = ResampledMaterials(
+                    samples, WATER_GRAVITY, WATER_VISCOSITY, False, settings, seed, fixed=True
+                )
+            variants = {HELD_OUT: held_out, "water (stored labels)": water}
         for name, dataset in variants.items():
             result = score(trainables[kind], net, [dataset[i] for i in pick])
             rows.append({"network": kind, "case": name, "step": ckpt["step"], **result})
