@@ -9,6 +9,7 @@ import time
 import pytest
 import torch
 from hydra import compose, initialize_config_dir
+from omegaconf import open_dict
 from torch import nn
 from torch_geometric.data import Data
 
@@ -173,6 +174,42 @@ def test_init_from_fine_tunes_trained_weights_with_their_statistics(tiny_data, t
                 f"train.init_from={first}",
             )
         )
+
+
+def test_init_from_per_trainable_and_zero_iterations_keep_a_published_net(tiny_data, tmp_path, monkeypatch):
+    # {line: DIR} starts only that net from DIR (the other afresh); iterations 0 keeps its weights as they are
+    monkeypatch.setitem(
+        registry._REGISTERED_TRAINABLES,
+        "fgn",
+        lambda cfg: {"line": LinearFit("line"), "plane": LinearFit("plane")},
+    )
+    common = ["task=train", "model=fgn", "data=tiny", f"data.out_dir={tiny_data}", "progress=false"]
+    common += [
+        "+train.batch_size.line=2",
+        "+train.batch_size.plane=2",
+        "train.lr_start=0.1",
+        "train.lr_end=0.1",
+    ]
+    first = tmp_path / "published"
+    train(_compose(*common, f"out_dir={first}", "+train.iterations.line=20", "+train.iterations.plane=20"))
+    second = tmp_path / "second"
+    cfg = _compose(
+        *common, f"out_dir={second}", "+train.iterations.line=0", "+train.iterations.plane=1",
+        f"train.init_from={{line: '{first}'}}",
+    )  # fmt: skip
+    train(cfg)
+    published, kept = read_checkpoint(first / "line.pt"), read_checkpoint(second / "line.pt")
+    for key, value in published["state_dict"].items():
+        assert torch.equal(kept["state_dict"][key], value), key
+    assert kept["step"] == 0 and kept["meta"]["stats"] == {"items": 6}
+    fresh = json.loads(read_checkpoint(second / "plane.pt")["meta"]["identity"])
+    assert "init_from" not in fresh  # the plane started afresh
+    with open_dict(cfg):
+        cfg.train.init_from = 3
+    with pytest.raises(
+        ConfigError, match=r"train.init_from must be a folder of checkpoints or \{trainable: folder\}, got 3"
+    ):
+        train(cfg)
 
 
 def test_export_to_copies_the_trained_networks_without_optimizer_state(tiny_data, tmp_path, monkeypatch):

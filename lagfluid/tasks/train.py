@@ -12,7 +12,9 @@ or ``huber`` at ``train.huber_delta``), Adam, the learning rate decayed exponent
 ``train.stat_samples`` training items before the first iteration and live in the network's buffers.
 ``train.extra_data=[DIR, ...]`` (optional) adds those datasets' train splits to ``data.out_dir``'s
 (validation stays on ``data.out_dir``'s). ``train.init_from=DIR`` (optional) fine-tunes: the network starts
-from ``DIR/<name>.pt``'s weights and keeps its statistics.
+from ``DIR/<name>.pt``'s weights and keeps its statistics; ``train.init_from={<name>: DIR}`` does so for the
+trainables named, the others start afresh. ``train.iterations.<name>=0`` with it keeps those weights as they
+are (a published network in the run's folder, for the on-policy rounds below).
 Measurements behind the profiles: ``docs/training.md``.
 
 **Outputs** in ``out_dir`` (default ``runs/train/<model>-<data>``): ``<name>.pt`` (model, kind, network,
@@ -60,7 +62,7 @@ import logging
 import math
 import os
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -211,6 +213,22 @@ def _per_trainable(tcfg: DictConfig, key: str, name: str, default: Any = None) -
     return section[name]
 
 
+def _init_from(setting: Any, name: str) -> str | None:
+    """``train.init_from`` for trainable ``name``: one folder for all, or ``{name: folder}`` for some.
+
+    Raises:
+        ConfigError: neither a folder (a string) nor a mapping of trainables to folders.
+    """
+    if setting is None or isinstance(setting, str):
+        return setting
+    if isinstance(setting, Mapping | DictConfig):
+        value = setting.get(name)
+        return None if value is None else str(value)
+    raise ConfigError(
+        f"train.init_from must be a folder of checkpoints or {{trainable: folder}}, got {setting!r}"
+    )
+
+
 class Trainer:
     """One trainable's training run in ``out_dir``: :func:`train_one` makes one and calls :meth:`run`.
 
@@ -258,7 +276,7 @@ class Trainer:
         self.milestones = [int(m) for m in tcfg.get("lr_milestones") or []]
         self.gamma = float(tcfg.get("lr_gamma", 0.5))
         self.adam_eps = float(tcfg.get("adam_eps") or 1e-8)
-        self.init_from = tcfg.get("init_from")
+        self.init_from = _init_from(tcfg.get("init_from"), kind)
         self.identity = self.run_identity()
         self.fingerprint = _fingerprint(self.identity)
         quantities = getattr(trainable, "range_quantities", tuple(UNITS))
@@ -595,6 +613,8 @@ class Trainer:
         self.net.train()
         self.open_log()
         stopped = self.loop()
+        if self.iterations == 0 and not self.ckpt_path.is_file():  # the initial weights, as they are
+            self.save()
         self.log_end(stopped)
         return {
             "kind": self.kind,
