@@ -25,7 +25,7 @@ from lagfluid.models.checkpoint import CheckpointError, network_payload, read_ch
 from lagfluid.models.fgn import networks as fgn_mod
 from lagfluid.models.fgn.learned_stages import compact_nodes
 from lagfluid.models.fgn.networks import build_network, load_network
-from lagfluid.models.fgn.original import load_original_network, original_checkpoint
+from lagfluid.models.fgn.original import load_original_network, original_checkpoint, write_checkpoints
 from lagfluid.models.fgn.simulator import AUTHORS_WEIGHTS
 from lagfluid.models.fgn.trainables import build_trainables
 from lagfluid.run import CONF_DIR
@@ -486,6 +486,20 @@ def test_the_authors_nets_as_lagfluid_checkpoints_are_their_nets(authors_weights
         assert stats["target"] == pytest.approx([8699.279, 1246911945.28**0.5], rel=1e-6)
     else:  # their acc_scaler: gravity in the mean
         assert stats["target"][0][2] == pytest.approx(-9.8065, abs=1e-4)
+
+
+def test_the_shipped_lagfluid_forms_of_the_authors_nets_are_their_conversion(authors_weights, tmp_path):
+    # lagfluid/weights/fgn_original/{advection,pressure}.pt: experiment=retrain_fgn starts from them
+    write_checkpoints(authors_weights, tmp_path)
+    for kind in ("advection", "pressure"):
+        shipped, fresh = (
+            read_checkpoint(authors_weights / f"{kind}.pt"),
+            read_checkpoint(tmp_path / f"{kind}.pt"),
+        )
+        assert shipped["options"] == fresh["options"] and shipped["meta"] == fresh["meta"]
+        assert shipped["state_dict"].keys() == fresh["state_dict"].keys()
+        for key, value in fresh["state_dict"].items():
+            assert torch.equal(shipped["state_dict"][key], value), (kind, key)
 
 
 def test_the_authors_collision_net_has_no_lagfluid_checkpoint_form(authors_weights):

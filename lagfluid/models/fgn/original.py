@@ -151,5 +151,38 @@ def original_checkpoint(kind: str, options: dict[str, Any], directory: str | os.
         name: [getattr(net, module).mean.squeeze().tolist(), getattr(net, module).std.squeeze().tolist()]
         for name, module in _STAT_MODULES[kind].items()
     }
-    meta = {"stats": stats, "converted_from": str(Path(directory) / f"{FILES[kind]}.npz")}
+    meta = {"stats": stats, "converted_from": f"{Path(directory).name}/{FILES[kind]}.npz"}
     return network_payload(net, kind, options, 0, meta, model="fgn")
+
+
+CONVERTIBLE = tuple(_STAT_MODULES)
+"""The authors' networks that have a lagfluid checkpoint form (their collision net does not)."""
+
+
+def write_checkpoints(directory: str | os.PathLike, out: str | os.PathLike | None = None) -> list[Path]:
+    """Write ``<out>/advection.pt`` and ``pressure.pt``: the authors' nets in ``directory`` converted.
+
+    ``out`` defaults to ``directory`` (the package ships them beside the arrays, the start of
+    ``experiment=retrain_fgn``'s pressure net). Options: ``conf/model/fgn_original.yaml``.
+    """
+    import yaml
+
+    from lagfluid.models.checkpoint import save_checkpoint
+
+    conf = Path(__file__).resolve().parents[2] / "conf" / "model" / "fgn_original.yaml"
+    options = yaml.safe_load(conf.read_text())
+    out = Path(out or directory)
+    written = []
+    for kind in CONVERTIBLE:
+        save_checkpoint(out / f"{kind}.pt", original_checkpoint(kind, options[kind], directory))
+        written.append(out / f"{kind}.pt")
+    return written
+
+
+if __name__ == "__main__":  # python -m lagfluid.models.fgn.original [DIR]: the shipped ones by default
+    import sys
+
+    from lagfluid.models.fgn.simulator import AUTHORS_WEIGHTS
+
+    for path in write_checkpoints(sys.argv[1] if len(sys.argv) > 1 else AUTHORS_WEIGHTS):
+        print(path)
