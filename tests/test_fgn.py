@@ -1052,6 +1052,21 @@ def _json_text_inside(value, where="metrics.json"):
     return []
 
 
+def test_the_shipped_pressure_net_is_the_authors_published_one_with_their_licence():
+    # what MODEL_CARD.md says: their prs_net unchanged (weights and scalers), their MIT licence beside it
+    from lagfluid.models.fgn.simulator import SHIPPED_WEIGHTS
+
+    mine, theirs = (
+        read_checkpoint(SHIPPED_WEIGHTS / "pressure.pt"),
+        read_checkpoint(AUTHORS_WEIGHTS / "pressure.pt"),
+    )
+    assert mine["options"] == theirs["options"] and mine["meta"]["stats"] == theirs["meta"]["stats"]
+    for key, value in theirs["state_dict"].items():
+        assert torch.equal(mine["state_dict"][key], value), key
+    assert "Copyright (c) 2022 zjjlee" in (SHIPPED_WEIGHTS / "LICENSE.pressure").read_text()
+    assert "the FGN authors' published pressure net" in (SHIPPED_WEIGHTS / "MODEL_CARD.md").read_text()
+
+
 def test_metrics_json_holds_the_networks_as_an_object_not_json_text(tmp_path):
     """``simulator.networks`` was a JSON string inside metrics.json; the rollout file keeps the JSON text."""
     from lagfluid.data.store import read_trajectory

@@ -6,6 +6,7 @@ import sys
 from pathlib import Path
 
 import pytest
+import torch
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
@@ -117,3 +118,31 @@ def test_the_retrain_command_trains_exports_and_times_a_sweep(tmp_path):
     init_from = json.loads(pressure["meta"]["identity"])["init_from"]
     assert init_from.endswith(str(Path("onpolicy", "round1")))  # in the job's folder of out_dir
     assert json.loads((sweep / FILE_NAME).read_text())["wall_s"] > 0
+
+
+def test_retrain_fgn_keeps_the_authors_pressure_net_and_trains_the_other_two(tmp_path, monkeypatch):
+    # the shipped recipe: advection and collision trained, the pressure net their published one, 0 iterations
+    from lagfluid.models.fgn.simulator import AUTHORS_WEIGHTS
+    from lagfluid.tasks.generate import generate
+    from lagfluid.tasks.train import train
+
+    data = tmp_path / "data"
+    generate(_compose("task=generate", "scene=random", "data=tiny", f"data.out_dir={data}", "progress=false"))
+    monkeypatch.chdir(REPO)  # the experiment's init_from is relative to the repository root, as export_to
+    exported = tmp_path / "weights"
+    cfg = _compose(
+        "experiment=retrain_fgn", "data=tiny", f"data.out_dir={data}", f"out_dir={tmp_path / 'run'}",
+        f"export_to={exported}", "train.iterations.advection=2", "train.iterations.collision=2",
+        "train.stat_samples=2", "threads=1",
+    )  # fmt: skip
+    train(cfg)
+    theirs, shipped = (
+        read_checkpoint(AUTHORS_WEIGHTS / "pressure.pt"),
+        read_checkpoint(exported / "pressure.pt"),
+    )
+    assert shipped["step"] == 0 and shipped["options"] == theirs["options"]
+    for key, value in theirs["state_dict"].items():
+        assert torch.equal(shipped["state_dict"][key], value), key
+    for name in ("advection", "collision"):
+        ckpt = read_checkpoint(exported / f"{name}.pt")
+        assert ckpt["step"] == 2 and "init_from" not in json.loads(ckpt["meta"]["identity"])
