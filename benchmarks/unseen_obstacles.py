@@ -491,6 +491,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--rows", nargs="+", default=list(ROWS), help="the tables' keys")
     ap.add_argument("--duration", type=float, default=0.6, help="s of each scene (a multiple of 40 ms)")
     ap.add_argument("--runs-dir", default=f"runs/{NAME}")
+    ap.add_argument("--name", default=NAME, help="results file name (a subset of rows beside the full table)")
     ap.add_argument("--reference-dir", default="runs/reference", help="the MPS references' cache")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--note-file", default=None, help="a markdown file added under the table's intro")
@@ -537,7 +538,7 @@ def main(argv: list[str] | None = None) -> None:
         + ("\n\n**Where the stopped rows stopped**\n\n" + "\n".join(stops) if stops else "")
     )
     prov = provenance(f"benchmarks.{NAME}", load, runs=str(args.runs_dir))
-    print(write_results(Path(args.results), NAME, table, intro, prov))
+    print(write_results(Path(args.results), args.name, table, intro, prov))
 
 
 if __name__ == "__main__":
