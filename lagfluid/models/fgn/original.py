@@ -179,10 +179,10 @@ def write_checkpoints(directory: str | os.PathLike, out: str | os.PathLike | Non
     return written
 
 
-if __name__ == "__main__":  # python -m lagfluid.models.fgn.original [DIR]: the shipped ones by default
+if __name__ == "__main__":  # python -m lagfluid.models.fgn.original lagfluid/weights/fgn_original
     import sys
 
-    from lagfluid.models.fgn.simulator import AUTHORS_WEIGHTS
-
-    for path in write_checkpoints(sys.argv[1] if len(sys.argv) > 1 else AUTHORS_WEIGHTS):
+    if len(sys.argv) != 2:
+        sys.exit("usage: python -m lagfluid.models.fgn.original DIR (their .npz and .scalers.json files)")
+    for path in write_checkpoints(sys.argv[1]):
         print(path)
