@@ -38,7 +38,7 @@ def plot_fig5(path: Path, runs: list[Run], verdict: str, title: str) -> None:
         )
     ax.set_xlabel("time (s)")
     ax.set_ylabel("Chamfer distance to MPS (mm)")
-    ax.set_title(f"{title}\n{verdict}", fontsize=10)
+    ax.set_title(f"{title}\n{textwrap.fill(verdict, 90)}", fontsize=10)  # a stop reason can be long
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
     fig.savefig(path, dpi=110)
