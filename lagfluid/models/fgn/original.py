@@ -180,9 +180,15 @@ def write_checkpoints(directory: str | os.PathLike, out: str | os.PathLike | Non
 
 
 if __name__ == "__main__":  # python -m lagfluid.models.fgn.original lagfluid/weights/fgn_original
+    import logging
     import sys
 
     if len(sys.argv) != 2:
         sys.exit("usage: python -m lagfluid.models.fgn.original DIR (their .npz and .scalers.json files)")
-    for path in write_checkpoints(sys.argv[1]):
-        print(path)
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    try:
+        written = write_checkpoints(sys.argv[1])
+    except CheckpointError as err:  # a folder without their files: the message, not a traceback
+        sys.exit(str(err))
+    for path in written:
+        logging.getLogger(__name__).info("wrote %s", path)
