@@ -385,14 +385,6 @@ class AdvectionNet(nn.Module):
             return gravity.to(out.dtype) + viscosity.to(out.dtype).unsqueeze(1) * out
         return out
 
-    def label(self, acceleration: Tensor, laplacian: Tensor | None) -> Tensor:
-        """What the network's de-standardised output is trained on (Nf, 3).
-
-        ``acceleration`` (m/s^2), or with ``linear_in_viscosity`` ``laplacian``: the MPS Laplacian of the
-        velocities (1/(m s)).
-        """
-        return laplacian if self.linear_in_viscosity else acceleration
-
 
 class PressureNet(nn.Module):
     """Pressure net ``p = G_pres(x*, v**, n)`` (paper eq. 16) on the non-free-surface particles.

@@ -284,8 +284,12 @@ class FGNTrainable:
 
 
 def _advection_label(net: nn.Module, item: Data) -> Tensor:
-    """(Nf, 3) what ``net``'s output is trained on (:meth:`AdvectionNet.label`): ``y``, or the Laplacian."""
-    return net.label(item.y, item.laplacian if net.linear_in_viscosity else None)
+    """(Nf, 3) what ``net``'s de-standardised output is trained on.
+
+    The acceleration ``y`` (m/s^2), or with ``linear_in_viscosity`` the MPS Laplacian of the velocities
+    (1/(m s), :class:`ResampledMaterials`).
+    """
+    return item.laplacian if net.linear_in_viscosity else item.y
 
 
 class AdvectionTrainable(FGNTrainable):
