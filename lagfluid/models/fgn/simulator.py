@@ -7,10 +7,11 @@ speed for accuracy stage by stage (e.g. exact advection + learned pressure).
 Weights: ``model.weights`` is a directory holding ``advection.pt``, ``collision.pt`` and ``pressure.pt``
 (:mod:`lagfluid.models.checkpoint`, as ``task=train`` writes them) or, with ``model.format=original``, the
 authors' arrays (:mod:`lagfluid.models.fgn.original`). ``null`` means the weights shipped in the package:
-per stage, ``lagfluid/weights/<model.shipped.<stage>>`` (``fgn``, see its MODEL_CARD.md; the Table 5
-ablations ``fgn_gcn``, ``fgn_sage``, ``fgn_mlp`` ship their node-focused nets and share FGN's collision net,
-which they do not change); for ``format=original``, the authors' published networks shipped in
-``lagfluid/weights/fgn_original`` (MIT, with their licence and card).
+per stage, ``lagfluid/weights/<model.shipped.<stage>>`` (``fgn``, see its MODEL_CARD.md; Table 5's
+reference ``fgn_trained_here`` ships its pressure net and the ablations ``fgn_gcn``, ``fgn_sage``, ``fgn_mlp``
+their node-focused nets, sharing FGN's other nets, which they do not change); for ``format=original``,
+the authors' published networks shipped in ``lagfluid/weights/fgn_original`` (MIT, with their licence and
+card).
 """
 
 from __future__ import annotations
