@@ -21,6 +21,7 @@ from lagfluid.run import CONF_DIR
 from lagfluid.tasks.multirun_timer import FILE_NAME, MultirunTimer
 
 REPO = CONF_DIR.parents[1]  # lagfluid/conf -> the repository root
+MLP_PRESSURE = REPO / "lagfluid" / "weights" / "fgn_mlp" / "pressure.pt"  # the ablation's, kept by its recipe
 
 
 def _compose(*overrides):
@@ -44,6 +45,7 @@ def test_every_shipped_learned_model_has_a_retrain_job():
         "retrain_fgn_gcn",
         "retrain_fgn_mlp",
         "retrain_fgn_sage",
+        "retrain_fgn_trained_here",
         "retrain_gns",
     ]
 
@@ -103,20 +105,21 @@ def test_the_retrain_command_trains_exports_and_times_a_sweep(tmp_path):
         f"out_dir={tmp_path / 'runs'}",
         f"export_to={exported}",
         f"hydra.sweep.dir={sweep}",
-        "train.iterations={advection: 2, collision: 2, pressure: 2}",
-        "train.batch_size={advection: 1, collision: 1, pressure: 1}",
+        "train.iterations.advection=2",
+        "train.batch_size.advection=1",
         "train.stat_samples=2",
-        "train.onpolicy.iterations=2",
         "threads=1",
     ]
     done = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr[-3000:]
     assert sorted(p.name for p in exported.glob("*.pt")) == ["advection.pt", "pressure.pt"]
-    pressure = read_checkpoint(exported / "pressure.pt")
-    assert pressure["step"] == 2
-    # the recipe's last on-policy round is what ships: fine-tuned from round 1's net
-    init_from = json.loads(pressure["meta"]["identity"])["init_from"]
-    assert init_from.endswith(str(Path("onpolicy", "round1")))  # in the job's folder of out_dir
+    assert read_checkpoint(exported / "advection.pt")["step"] == 2
+    # the recipe keeps the ablation's pressure net (0 iterations): it ships as the file it was, with the
+    # record of the training that made it, not this run's record of 0 iterations
+    kept, shipped = read_checkpoint(exported / "pressure.pt"), read_checkpoint(MLP_PRESSURE)
+    assert kept["step"] == shipped["step"] > 0 and kept["meta"] == shipped["meta"]
+    for key, value in shipped["state_dict"].items():
+        assert torch.equal(kept["state_dict"][key], value), key
     assert json.loads((sweep / FILE_NAME).read_text())["wall_s"] > 0
 
 
@@ -141,6 +144,7 @@ def test_retrain_fgn_keeps_the_authors_pressure_net_and_trains_the_other_two(tmp
         read_checkpoint(exported / "pressure.pt"),
     )
     assert shipped["step"] == 0 and shipped["options"] == theirs["options"]
+    assert shipped["meta"] == theirs["meta"]  # their file as it is, not this run's record of 0 iterations
     for key, value in theirs["state_dict"].items():
         assert torch.equal(shipped["state_dict"][key], value), key
     for name in ("advection", "collision"):

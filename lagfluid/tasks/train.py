@@ -14,7 +14,8 @@ or ``huber`` at ``train.huber_delta``), Adam, the learning rate decayed exponent
 (validation stays on ``data.out_dir``'s). ``train.init_from=DIR`` (optional) fine-tunes: the network starts
 from ``DIR/<name>.pt``'s weights and keeps its statistics; ``train.init_from={<name>: DIR}`` does so for the
 trainables named, the others start afresh. ``train.iterations.<name>=0`` with it keeps those weights as they
-are (a published network in the run's folder, for the on-policy rounds below).
+are (a published network in the run's folder, for the on-policy rounds below); without rounds, the export
+below copies the kept network's own file, with the record of the training that made it.
 Measurements behind the profiles: ``docs/training.md``.
 
 **Outputs** in ``out_dir`` (default ``runs/train/<model>-<data>``): ``<name>.pt`` (model, kind, network,
@@ -47,9 +48,9 @@ original data and rounds 1..k's together, R times (:mod:`lagfluid.tasks.dagger_r
 first.
 
 **Export.** With ``export_to=DIR`` the trained networks are copied into ``DIR`` once every trainable of the
-run has finished (with rounds: the last round's), without optimizer and RNG state
-(:func:`lagfluid.models.checkpoint.export_weights`; the ``retrain_*`` experiments set it to the shipped
-weights' folder).
+run has finished (with rounds: the last round's; a network kept as it is: its own file), without optimizer
+and RNG state (:func:`lagfluid.models.checkpoint.export_weights`; the ``retrain_*`` experiments set it to
+the shipped weights' folder).
 """
 
 from __future__ import annotations
@@ -625,6 +626,17 @@ class Trainer:
         }
 
 
+def _kept_networks(cfg: DictConfig, names: Sequence[str]) -> dict[str, Path]:
+    """``{name: folder}`` of the trainables kept as they are: 0 iterations from ``train.init_from``."""
+    tcfg = cfg.train
+    kept = {}
+    for name in names:
+        source = _init_from(tcfg.get("init_from"), name)
+        if source is not None and int(_per_trainable(tcfg, "iterations", name)) == 0:
+            kept[name] = Path(source)
+    return kept
+
+
 def _train_scenes(data_dir: Path) -> Any:
     """The train split's scenes of the dataset in ``data_dir`` (part of a run's identity)."""
     return load_metadata(data_dir).get("splits", {}).get("train")
@@ -754,12 +766,16 @@ def _train_in(
         if summaries[-1].get("stopped"):  # the cap is the run's: the later trainables and the export wait
             return summaries
     sources = dict.fromkeys(names, out_dir)  # where each trained network ends up
+    # a network kept as it is (0 iterations from train.init_from) ships as its source's file, with the
+    # provenance of the training that made it, not this run's record of 0 iterations
+    kept = _kept_networks(cfg, names)
+    sources.update(kept)
     if with_rounds:
         if dagger.rounds:
             last_round = run_dagger(cfg, dagger, out_dir, train_one)
         else:
             last_round = run_rounds(cfg, onpolicy, out_dir, train_one)
-        sources = {name: last_round for name in names}
+        sources, kept = {name: last_round for name in names}, {}
     export_to = cfg.get("export_to")
     if export_to and distributed.is_main():
         check_export_to(export_to)  # again: the folder may have changed during the training
@@ -768,7 +784,10 @@ def _train_in(
         for name, source in sources.items():  # only this run's trainables: out_dir may hold others
             meta = read_checkpoint(Path(source) / f"{name}.pt").get("meta") or {}
             quantities = getattr(trainables[name], "range_quantities", tuple(UNITS))
-            trained = range_from_checkpoint_meta({**meta, "range": None}, quantities)
+            # a kept network's range is its own record (its training data need not be here)
+            trained = (
+                None if name in kept else range_from_checkpoint_meta({**meta, "range": None}, quantities)
+            )
             written = export_weights(
                 source, export_to, kinds=[name], ranges={name: trained} if trained else None
             )

@@ -126,6 +126,17 @@ _STAT_MODULES = {
     "advection": {"speed": "speed", "target": "target"},
     "pressure": {"speed": "speed", "density": "density", "target": "target"},
 }
+# What the authors' pressure net was trained on (their code, the paper's A.2: water, l0 = 0.05 m, dt = 2 ms,
+# g = 9.8065 m/s^2): recorded so a rollout outside it warns (lagfluid/models/training_range.py), as for a
+# net trained here. Their advection net's range of g and nu is not published: none is recorded.
+_TRAINED_ON = {
+    "pressure": {
+        "dt": [0.002, 0.002],
+        "l0": [0.05, 0.05],
+        "gravity": [9.8065, 9.8065],
+        "viscosity": [1e-06, 1e-06],
+    }
+}
 
 
 def original_checkpoint(kind: str, options: dict[str, Any], directory: str | os.PathLike) -> dict[str, Any]:
@@ -152,6 +163,8 @@ def original_checkpoint(kind: str, options: dict[str, Any], directory: str | os.
         for name, module in _STAT_MODULES[kind].items()
     }
     meta = {"stats": stats, "converted_from": f"{Path(directory).name}/{FILES[kind]}.npz"}
+    if kind in _TRAINED_ON:
+        meta["range"] = _TRAINED_ON[kind]
     return network_payload(net, kind, options, 0, meta, model="fgn")
 
 
