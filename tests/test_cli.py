@@ -208,7 +208,7 @@ def test_every_model_and_scene_composes_and_instantiates(model, scene, request, 
     if scene == "mesh":
         tank, block = request.getfixturevalue("mesh_files")
         extra += [f"scene.container={tank}", f"scene.fluid={block}"]
-    if model in ("fgn", "hybrid", "fgn_gcn", "fgn_sage", "fgn_mlp"):
+    if model in ("fgn", "hybrid", "fgn_trained_here", "fgn_gcn", "fgn_sage", "fgn_mlp"):
         weights = request.getfixturevalue("untrained_weights_of")("fgn" if model == "hybrid" else model)
         extra.append(f"model.weights={weights}")
     if model not in available_simulators():  # a model that trains but does not roll out yet (cconv)

@@ -121,7 +121,7 @@ def test_every_simulator_with_a_dam_row_and_both_mps_profiles_are_swept():
     keys = [e.sim.key for e in entries(None)]
     for key in ("mps", "mps_corrected", "fgn", "hybrid_advection", "hybrid_pressure", "fgn_original", "gns"):
         assert key in keys
-    for key in ("cconv", "cconv_original", "fgn_gcn", "fgn_sage", "fgn_mlp"):
+    for key in ("cconv", "cconv_original", "fgn_trained_here", "fgn_gcn", "fgn_sage", "fgn_mlp"):
         assert key in keys
     assert "solver=mps_corrected" in next(e for e in entries(["mps_corrected"])).extra
     with pytest.raises(ValueError, match="unknown simulators \\['bogus'\\]"):

@@ -77,7 +77,9 @@ def test_fgn_trainables_come_from_the_registry():
 
 
 def test_a_model_without_trainables_is_a_clear_error(tiny_data, tmp_path):
-    listed = r"model 'mps' has nothing to train.*fgn, fgn_gcn, fgn_mlp, fgn_sage, gns, hybrid"
+    listed = (
+        r"model 'mps' has nothing to train.*fgn, fgn_gcn, fgn_mlp, fgn_sage, fgn_trained_here, gns, hybrid"
+    )
     with pytest.raises(UnknownNameError, match=listed):
         train(_compose("task=train", "model=mps", f"data.out_dir={tiny_data}", f"out_dir={tmp_path}"))
 

@@ -40,8 +40,9 @@ Parts (``--only``):
   sequences, g in [1, 100] m/s^2, nu in [1e-4, 0.1] m^2/s) and the pressure net's PPE relative residual
   (eq. 31), mean +- standard deviation.
 * ``table5``: the paper's aggregator ablation: FGN's node-focused nets with GCN, SAGE (mean) or no
-  aggregation (``model=fgn_gcn``, ``fgn_sage``, ``fgn_mlp``, rows ``table5_<case>_<key>``) beside Table 3's
-  FGN and MPS rows, same metrics (the ablations' shipped weights: ``lagfluid/weights/fgn_*``).
+  aggregation (``model=fgn_gcn``, ``fgn_sage``, ``fgn_mlp``, rows ``table5_<case>_<key>``) beside their
+  reference, FGN with every net trained here (``fgn_trained_here``, the same recipe and pressure net
+  architecture), and Table 3's FGN and MPS rows, same metrics (shipped weights: ``lagfluid/weights/fgn_*``).
 * ``fig5``: FGN's Chamfer distance to MPS against time for dt from 0.5 ms up, until the rollout guard stops
   a run (the largest dt that completes is reported).
 * ``tradeoff``: wall seconds per simulated second against accuracy (Chamfer distance to the reference MPS,

@@ -207,9 +207,12 @@ def part_table5(bench: Bench, report: Report, dam_runs: list[Run]) -> None:
     report.sections["table5"] = (
         "## Table 5: the aggregator of FGN's node-focused networks\n\n"
         "FGN's advection and pressure nets with their two kernel-weighted aggregation layers replaced by "
-        "PyG's `GCNConv` (neighbours weighted by degree), `SAGEConv` (mean) or no aggregation (MLP); "
-        "everything else FGN's, trained by FGN's recipe (`model=fgn_gcn`, `fgn_sage`, `fgn_mlp`; the data of "
-        "each set of weights: its `MODEL_CARD.md`). Metrics and reference as Tables 1/3.\n\n"
+        "PyG's `GCNConv` (neighbours weighted by degree), `SAGEConv` (mean) or no aggregation (MLP) "
+        "(`model=fgn_gcn`, `fgn_sage`, `fgn_mlp`). Their reference is FGN with every net trained here "
+        "(`model=fgn_trained_here`): the ablations are it with one layer type swapped, trained by the same "
+        "recipe (FGN's advection recipe, the pressure recipe before the authors' pressure net shipped; "
+        "each set of weights: its `MODEL_CARD.md`); the FGN row (the authors' pressure net) is shown "
+        "beside them. Metrics and reference as Tables 1/3.\n\n"
         + accuracy_md(rows, cases)
         + "\n\n"
         + (f"{notes}\n" if notes else "")
