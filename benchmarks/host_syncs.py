@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import functools
 import os
 import traceback
 import warnings
@@ -33,6 +34,8 @@ from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 from torch.utils._python_dispatch import TorchDispatchMode
 
+import baselines
+import lagfluid
 from benchmarks.provenance import provenance, write_results
 from lagfluid.errors import ConfigError
 from lagfluid.neighbors import pair_kernels, search
@@ -53,13 +56,21 @@ READ_METHODS = ("tolist", "numpy", "cpu")
 # Factories that copy host data (not a tensor) to their ``device=``: on CUDA a blocking copy (the host waits
 # for the queue). Counted as reads ("upload") when given a device; copies by ``Tensor.to`` are not counted.
 UPLOAD_FACTORIES = ("tensor", "as_tensor")
-_OURS = ("/lagfluid/", "/baselines/")
+# The package's and the baselines' folders, as absolute paths: a name match ("/lagfluid/") would also take
+# every file of a checkout cloned into a folder called lagfluid (this file and the tests included).
+_OURS = tuple(str(Path(m.__file__).resolve().parent) + os.sep for m in (lagfluid, baselines))
+
+
+@functools.cache
+def _is_ours(filename: str) -> bool:
+    """Whether the source file ``filename`` (as a frame names it) lies in the package or the baselines."""
+    return str(Path(filename).resolve()).startswith(_OURS)
 
 
 def _caller() -> str:
     """``file:line function`` of the innermost frame of the package (or the baselines) on the stack."""
     for frame in reversed(traceback.extract_stack()):
-        if any(part in frame.filename for part in _OURS):
+        if _is_ours(frame.filename):
             return f"{Path(frame.filename).name}:{frame.lineno} {frame.name}"
     return "elsewhere"
 

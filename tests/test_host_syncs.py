@@ -8,10 +8,13 @@ the code a CUDA device takes on the CPU (Numba off, the torch cell list) and cou
 from __future__ import annotations
 
 import contextlib
+import importlib.util
+from pathlib import Path
 
 import pytest
 import torch
 
+import lagfluid
 from benchmarks.host_syncs import HostSyncCounter, count_steps, device_path, device_path_simulation
 from lagfluid.rollout import Guard
 
@@ -69,6 +72,25 @@ def test_counter_sees_a_read_a_mask_and_an_upload():
         torch.tensor([1.0, 2.0])  # made where it is used: no copy to a device
     assert sum(counter.reads.values()) == 3 and sum(counter.sizes.values()) == 1
     assert torch.tensor is not None and torch.Tensor.tolist(x) == [0.0, 1.0, 2.0, 3.0, 4.0]
+
+
+def test_reads_are_attributed_to_the_package_not_to_a_folder_that_shares_its_name(tmp_path):
+    # a checkout cloned into a folder called lagfluid: its tests and benchmarks are not the package
+    clone = tmp_path / "lagfluid" / "tests"
+    clone.mkdir(parents=True)
+    (clone / "reader.py").write_text("def read(x):\n    return float(x.sum())\n")
+    spec = importlib.util.spec_from_file_location("reader_in_a_clone", clone / "reader.py")
+    reader = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(reader)
+    with device_path():
+        _, state = device_path_simulation("fgn", "dam", warmup=1)
+    with HostSyncCounter() as counter:
+        reader.read(torch.arange(3.0))
+        Guard().check(state)  # one read, in the package
+    reads = dict(counter.reads)
+    assert reads.pop("_local_scalar_dense elsewhere", 0) == 1, dict(counter.reads)
+    package = Path(lagfluid.__file__).parent
+    assert len(reads) == 1 and all(any(package.rglob(w.split()[1].split(":")[0])) for w in reads), reads
 
 
 def test_guard_reads_a_passing_state_once():
