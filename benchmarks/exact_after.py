@@ -6,6 +6,11 @@ not complete, + both with K = 3 iterations and relaxation w = 0.5 (:mod:`lagflui
 Per row: complete, or the step the rollout guard stops it at; the mean and largest Chamfer distance to
 MPS over the frames it stored, and the mean density error beside MPS's.
 
+Each model also gets its control without a network: MPS's own step at the model's dt (explicit viscosity
+and gravity where the network's step was, then the same collision rule and pressure projection), stopped
+by the model's Courant guard. A "+ exact" row that is no closer than its control, or no faster, owes its
+accuracy to the solver's stages, not to the network.
+
 Usage::
 
     python -m benchmarks.exact_after [--models gns cconv cconv_original] [--runs-dir runs/exact_after]
@@ -65,6 +70,32 @@ def command(
     ]
 
 
+def control_command(
+    dt: float, max_courant: float, out: Path, args: argparse.Namespace, scene_dt: float
+) -> list[str]:
+    """The ``task=evaluate`` command of a model's control: ``model=mps`` stepping by the model's ``dt``.
+
+    The guard is the model's (``max_courant``); the reference stays the models' one (the scene's dt and
+    MPS's own guard), as in :func:`command`.
+    """
+    steps, every = round(args.duration / dt), round(FRAME_INTERVAL / dt)
+    ref_steps, ref_every = round(args.duration / scene_dt), round(FRAME_INTERVAL / scene_dt)
+    own_guard = compose_config(["model=mps", f"scene={args.scene}"]).solver.guard.max_courant
+    reference = (
+        f"evaluate.reference={{dt:null,steps:{ref_steps},write_every:{ref_every},"
+        f"solver:{{guard:{{max_courant:{own_guard}}}}}}}"
+    )
+    return [
+        *("python", "-m", "lagfluid.run", "task=evaluate", "model=mps", f"scene={args.scene}"),
+        *(f"dt={dt:g}", f"steps={steps}", f"write_every={every}", f"threads={args.threads}"),
+        "progress=false",
+        f"solver.guard.max_courant={max_courant:g}",
+        f"evaluate.reference_dir={args.reference_dir}",
+        reference,
+        f"out_dir={out}",
+    ]
+
+
 def _weights(args: argparse.Namespace) -> tuple[str, ...]:
     """``model.weights=DIR`` where ``--weights`` names a folder, else nothing (the shipped weights)."""
     return (f"model.weights={args.weights}",) if args.weights else ()
@@ -105,7 +136,7 @@ def verdict(model: str, rows: list[dict[str, Any]]) -> str:
     """One sentence: which variants of ``model`` complete (the cheapest first), or the furthest one."""
     done = [r for r in rows if r["rollout"] == "complete"]
     if done:
-        best = min(done, key=lambda r: float(r["Chamfer to MPS mean / max (mm)"].split(" / ")[0]))
+        best = min(done, key=_mean)
         return (
             f"`{model}`: complete with {'; '.join(_stages(r) for r in done)}; "
             f"closest to MPS: {best['simulator']} ({best['Chamfer to MPS mean / max (mm)']} mm)."
@@ -118,11 +149,63 @@ def verdict(model: str, rows: list[dict[str, Any]]) -> str:
     return f"`{model}`: none completes; the furthest is {far['simulator']}, which {far['rollout']}."
 
 
+def _run(cmd: list[str], out: Path, args: argparse.Namespace) -> dict[str, Any]:
+    """``out``'s metrics.json, after running ``cmd`` where it is not there yet."""
+    if not (out / "metrics.json").is_file():
+        print(f"[exact_after] {shlex.join(cmd)}", flush=True)
+        env = {**os.environ, "OMP_NUM_THREADS": str(args.threads)}
+        subprocess.run([sys.executable, *cmd[1:]], cwd=REPO, env=env, check=False)
+    if not (out / "metrics.json").is_file():
+        raise SystemExit(f"[exact_after] {out} holds no metrics.json: the run failed (see its output)")
+    return json.loads((out / "metrics.json").read_text())
+
+
+def control_row(
+    model: str, dt: float, max_courant: float, args: argparse.Namespace, scene_dt: float
+) -> dict[str, Any]:
+    """``model``'s control: MPS's own step at ``dt`` with the model's guard (:func:`control_command`)."""
+    out = folder(Path(args.runs_dir), model, "control")
+    cmd = control_command(dt, max_courant, out, args, scene_dt)
+    row = result_row(_run(cmd, out, args), cmd)
+    row["simulator"] = f"control of {model}: MPS at {1e3 * dt:g} ms, no network"
+    row["exact stages after the step"] = f"MPS's own step (Courant guard {max_courant:g})"
+    print(f"[exact_after] {row['simulator']}: {row['rollout']}", flush=True)
+    return row
+
+
+def control_verdict(rows: list[dict[str, Any]]) -> str:
+    """One sentence on a model's control (``rows[-1]``) against the model's rows (``rows[:-1]``)."""
+    control = rows[-1]
+    done = control["rollout"] == "complete"
+    beaten = [
+        r["simulator"]
+        for r in rows[:-1]
+        if r["rollout"] == "complete" and (not done or _mean(r) < _mean(control))
+    ]
+    return (
+        f"Its control ({control['simulator'].split(': ', 1)[1]}) "
+        + ("completes" if done else control["rollout"])
+        + f" at {control['Chamfer to MPS mean / max (mm)']} mm"
+        + (
+            f"; the network earns its place in {', '.join(beaten)}."
+            if beaten
+            else "; no row with the network completes closer to MPS than it."
+        )
+    )
+
+
+def _mean(row: dict[str, Any]) -> float:
+    return float(row["Chamfer to MPS mean / max (mm)"].split(" / ")[0])
+
+
 def run_model(model: str, args: argparse.Namespace) -> list[dict[str, Any]]:
-    """The rows of ``model``: every variant, the relaxed one where one of them does not complete."""
+    """The rows of ``model``, its control without a network last (:func:`control_row`).
+
+    Every variant, and the relaxed one where one of them does not complete.
+    """
     cfg = compose_config([f"model={model}", f"scene={args.scene}", *_weights(args)])
-    own = build_simulator(cfg).dt
-    dt = float(own) if own is not None else scene_params(cfg).dt
+    simulator, scene_dt = build_simulator(cfg), scene_params(cfg).dt
+    dt = float(simulator.dt) if simulator.dt is not None else scene_dt
     rows: list[dict[str, Any]] = []
     variants = list(VARIANTS.items())
     for i, (variant, overrides) in enumerate([*variants, RELAXED]):
@@ -130,16 +213,10 @@ def run_model(model: str, args: argparse.Namespace) -> list[dict[str, Any]]:
             break
         out = folder(Path(args.runs_dir), model, variant)
         cmd = command(model, dt, overrides, out, args)
-        if not (out / "metrics.json").is_file():
-            print(f"[exact_after] {shlex.join(cmd)}", flush=True)
-            env = {**os.environ, "OMP_NUM_THREADS": str(args.threads)}
-            subprocess.run([sys.executable, *cmd[1:]], cwd=REPO, env=env, check=False)
-        if not (out / "metrics.json").is_file():
-            raise SystemExit(f"[exact_after] {out} holds no metrics.json: the run failed (see its output)")
-        metrics = json.loads((out / "metrics.json").read_text())
-        rows.append(result_row(metrics, cmd))
+        rows.append(result_row(_run(cmd, out, args), cmd))
         print(f"[exact_after] {rows[-1]['simulator']}: {rows[-1]['rollout']}", flush=True)
-    return rows
+    limit = simulator.max_courant if simulator.max_courant is not None else cfg.solver.guard.max_courant
+    return [*rows, control_row(model, dt, float(limit), args, scene_dt)]
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -168,7 +245,7 @@ def main(argv: list[str] | None = None) -> None:
     for model in args.models:
         model_rows = run_model(model, args)
         rows += model_rows
-        verdicts.append(verdict(model, model_rows))
+        verdicts.append(verdict(model, model_rows[:-1]) + " " + control_verdict(model_rows))
     intro = (
         "# Exact stages after a learned step (`model.exact_after`)\n\n"
         f"`task=evaluate` on `{args.scene}` for {args.duration:g} s, frames every "

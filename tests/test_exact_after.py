@@ -435,3 +435,44 @@ def test_levers_runs_each_levers_weights_in_its_own_folder(tmp_path, monkeypatch
         levers.parse_lever("a=b")
     with pytest.raises(SystemExit, match=r"/no/such \(of a\) is not a folder of the model's weights"):
         levers.parse_lever("a=/no/such=text")
+
+
+def test_each_models_control_is_mps_at_its_dt_against_the_same_reference():
+    """The control of a model stepping by 8 ms: MPS's own step at 8 ms under the model's guard, compared
+    with the reference the model's rows use (MPS at the scene's 2 ms, MPS's own guard, frames every 40 ms)."""
+    import argparse
+
+    from benchmarks.exact_after import control_command, control_verdict, result_row
+    from lagfluid.tasks.evaluate.options import EvaluateOptions
+    from lagfluid.tasks.evaluate.reference import reference_key, reference_settings
+
+    args = argparse.Namespace(duration=1.0, threads=1, reference_dir="ref", scene="dam", weights=None)
+    cmd = control_command(0.008, 1.0, Path("out"), args, scene_dt=0.002)
+    assert cmd[:6] == ["python", "-m", "lagfluid.run", "task=evaluate", "model=mps", "scene=dam"]
+    overrides = cmd[3:]
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        control = compose(config_name="config", overrides=overrides)
+        models_reference = compose(
+            config_name="config",
+            overrides=["task=evaluate", "model=mps", "scene=dam", "steps=500", "write_every=20"],
+        )
+    assert control.dt == 0.008 and control.steps == 125 and control.write_every == 5
+    assert control.solver.guard.max_courant == 1.0 != models_reference.solver.guard.max_courant
+    options = EvaluateOptions.from_config(control.evaluate)
+    assert reference_key(reference_settings(control, options.reference)) == reference_key(models_reference)
+
+    def row(name, complete, steps, chamfer):
+        return result_row(_metrics(name, complete, steps, chamfer), ["x"])
+
+    stopped_control = row("mps", False, 63, 11.37)
+    stopped_control["simulator"] = "control of gns: MPS at 8 ms, no network"
+    far = row("gns + both", True, 125, 125.4)
+    assert control_verdict([far, stopped_control]) == (
+        "Its control (MPS at 8 ms, no network) stops at step 64 (0.512 s) at 11.4 / 22.7 mm; the network "
+        "earns its place in gns + both."
+    )
+    done_control = row("mps", True, 500, 0.0)
+    done_control["simulator"] = "control of cconv: MPS at 2 ms, no network"
+    assert control_verdict([row("cconv + both", True, 500, 36.3), done_control]).endswith(
+        "completes at 0.0 / 0.0 mm; no row with the network completes closer to MPS than it."
+    )
