@@ -21,7 +21,8 @@ from lagfluid.run import CONF_DIR
 from lagfluid.tasks.multirun_timer import FILE_NAME, MultirunTimer
 
 REPO = CONF_DIR.parents[1]  # lagfluid/conf -> the repository root
-MLP_PRESSURE = REPO / "lagfluid" / "weights" / "fgn_mlp" / "pressure.pt"  # the ablation's, kept by its recipe
+# where Table 5's recipe (train=table5) starts the ablation's pressure net from
+MLP_ROUND0 = REPO / "lagfluid" / "weights" / "fgn_mlp" / "round0" / "pressure.pt"
 
 
 def _compose(*overrides):
@@ -108,18 +109,25 @@ def test_the_retrain_command_trains_exports_and_times_a_sweep(tmp_path):
         "train.iterations.advection=2",
         "train.batch_size.advection=1",
         "train.stat_samples=2",
+        "train.onpolicy.iterations=2",
+        "train.onpolicy.jobs=1",
         "threads=1",
     ]
     done = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr[-3000:]
     assert sorted(p.name for p in exported.glob("*.pt")) == ["advection.pt", "pressure.pt"]
     assert read_checkpoint(exported / "advection.pt")["step"] == 2
-    # the recipe keeps the ablation's pressure net (0 iterations): it ships as the file it was, with the
-    # record of the training that made it, not this run's record of 0 iterations
-    kept, shipped = read_checkpoint(exported / "pressure.pt"), read_checkpoint(MLP_PRESSURE)
-    assert kept["step"] == shipped["step"] > 0 and kept["meta"] == shipped["meta"]
-    for key, value in shipped["state_dict"].items():
-        assert torch.equal(kept["state_dict"][key], value), key
+    # Table 5's recipe: the pressure net starts as round0's file (0 iterations), then two on-policy rounds on
+    # the model's own rollouts fine-tune it; round 2's net ships, with the record of its own training
+    (run,) = [p for p in (tmp_path / "runs").iterdir() if p.is_dir()]
+    start, round0 = read_checkpoint(run / "pressure.pt"), read_checkpoint(MLP_ROUND0)
+    assert start["step"] == 0
+    for key, value in round0["state_dict"].items():
+        assert torch.equal(start["state_dict"][key], value), key
+    shipped = read_checkpoint(exported / "pressure.pt")
+    assert shipped["step"] == 2 and shipped["meta"]["profile"] == "table5"
+    assert Path(shipped["meta"]["data_dir"]) == run / "onpolicy" / "round2" / "data"
+    assert any(not torch.equal(shipped["state_dict"][k], v) for k, v in round0["state_dict"].items())
     assert json.loads((sweep / FILE_NAME).read_text())["wall_s"] > 0
 
 
