@@ -210,8 +210,9 @@ def part_table5(bench: Bench, report: Report, dam_runs: list[Run]) -> None:
         "PyG's `GCNConv` (neighbours weighted by degree), `SAGEConv` (mean) or no aggregation (MLP) "
         "(`model=fgn_gcn`, `fgn_sage`, `fgn_mlp`). Their reference is FGN with every net trained here "
         "(`model=fgn_trained_here`): the ablations are it with one layer type swapped, trained by the same "
-        "recipe (FGN's advection recipe, the pressure recipe before the authors' pressure net shipped; "
-        "each set of weights: its `MODEL_CARD.md`); the FGN row (the authors' pressure net) is shown "
+        "recipe (`train=table5`: FGN's advection recipe; the pressure net of the recipe before the authors' "
+        "pressure net shipped, fine-tuned by two on-policy rounds with the model's own advection net; each "
+        "set of weights: its `MODEL_CARD.md`); the FGN row (the authors' pressure net) is shown "
         "beside them. Metrics and reference as Tables 1/3.\n\n"
         + accuracy_md(rows, cases)
         + "\n\n"
