@@ -42,7 +42,8 @@ Parts (``--only``):
 * ``table5``: the paper's aggregator ablation: FGN's node-focused nets with GCN, SAGE (mean) or no
   aggregation (``model=fgn_gcn``, ``fgn_sage``, ``fgn_mlp``, rows ``table5_<case>_<key>``) beside their
   reference, FGN with every net trained here (``fgn_trained_here``, the same recipe, ``train=table5``, and
-  pressure net architecture), and Table 3's FGN and MPS rows, same metrics (shipped weights: ``lagfluid/weights/fgn_*``).
+  pressure net architecture), and Table 3's FGN and MPS rows, same metrics (shipped weights:
+  ``lagfluid/weights/fgn_*``).
 * ``fig5``: FGN's Chamfer distance to MPS against time for dt from 0.5 ms up, until the rollout guard stops
   a run (the largest dt that completes is reported).
 * ``tradeoff``: wall seconds per simulated second against accuracy (Chamfer distance to the reference MPS,
