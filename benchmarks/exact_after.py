@@ -142,10 +142,7 @@ def verdict(model: str, rows: list[dict[str, Any]]) -> str:
             f"closest to MPS: {best['simulator']} ({best['Chamfer to MPS mean / max (mm)']} mm)."
         )
 
-    def reach(r: dict[str, Any]) -> int:
-        return int(r["rollout"].split()[3])
-
-    far = max(rows, key=reach)
+    far = max(rows, key=_reach)
     return f"`{model}`: none completes; the furthest is {far['simulator']}, which {far['rollout']}."
 
 
@@ -174,24 +171,34 @@ def control_row(
 
 
 def control_verdict(rows: list[dict[str, Any]]) -> str:
-    """One sentence on a model's control (``rows[-1]``) against the model's rows (``rows[:-1]``)."""
-    control = rows[-1]
+    """One sentence on a model's control (``rows[-1]``) against the model's rows (``rows[:-1]``).
+
+    The network earns its place where a row with it completes and the control does not, or completes
+    closer to MPS; where neither completes, where the furthest row with it stops against the control.
+    """
+    control, rows = rows[-1], rows[:-1]
     done = control["rollout"] == "complete"
-    beaten = [
-        r["simulator"]
-        for r in rows[:-1]
-        if r["rollout"] == "complete" and (not done or _mean(r) < _mean(control))
-    ]
-    return (
+    said = (
         f"Its control ({control['simulator'].split(': ', 1)[1]}) "
         + ("completes" if done else control["rollout"])
         + f" at {control['Chamfer to MPS mean / max (mm)']} mm"
-        + (
-            f"; the network earns its place in {', '.join(beaten)}."
-            if beaten
-            else "; no row with the network completes closer to MPS than it."
-        )
     )
+    beaten = [
+        r["simulator"] for r in rows if r["rollout"] == "complete" and (not done or _mean(r) < _mean(control))
+    ]
+    if beaten:
+        return f"{said}; the network earns its place in {', '.join(beaten)}."
+    if done:
+        return f"{said}; no row with the network completes closer to MPS than it."
+    far = max(rows, key=_reach)
+    if _reach(far) > _reach(control):
+        return f"{said}; with the network {far['simulator']} gets further (it {far['rollout']})."
+    return f"{said}; no row with the network gets further."
+
+
+def _reach(row: dict[str, Any]) -> int:
+    """The step a stopped row's guard refused (a complete row: a step past every stopped one)."""
+    return 10**9 if row["rollout"] == "complete" else int(row["rollout"].split()[3])
 
 
 def _mean(row: dict[str, Any]) -> float:

@@ -471,6 +471,14 @@ def test_each_models_control_is_mps_at_its_dt_against_the_same_reference():
         "Its control (MPS at 8 ms, no network) stops at step 64 (0.512 s) at 11.4 / 22.7 mm; the network "
         "earns its place in gns + both."
     )
+    further = row("gns + pressure", False, 115, 187.4)
+    assert control_verdict([row("gns", False, 29, 14.4), further, stopped_control]) == (
+        "Its control (MPS at 8 ms, no network) stops at step 64 (0.512 s) at 11.4 / 22.7 mm; with the "
+        "network gns + pressure gets further (it stops at step 116 (0.928 s))."
+    )
+    assert control_verdict([row("gns", False, 29, 14.4), stopped_control]).endswith(
+        "; no row with the network gets further."
+    )
     done_control = row("mps", True, 500, 0.0)
     done_control["simulator"] = "control of cconv: MPS at 2 ms, no network"
     assert control_verdict([row("cconv + both", True, 500, 36.3), done_control]).endswith(
