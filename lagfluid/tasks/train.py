@@ -765,17 +765,18 @@ def _train_in(
         summaries.append(train_one(cfg, trainables[name], out_dir, deadline))
         if summaries[-1].get("stopped"):  # the cap is the run's: the later trainables and the export wait
             return summaries
-    # where each network to export is: this run's folder, or (without rounds) a network kept as it is (0
-    # iterations from train.init_from) ships as its source's file, with the record of the training that made
-    # it, not this run's record of 0 iterations
+    # where each network to export is: the last round's folder, else this run's; without rounds a network
+    # kept as it is (0 iterations from train.init_from) ships as its source's file, with the record of the
+    # training that made it, not this run's record of 0 iterations
     kept = {} if with_rounds else _kept_networks(cfg, names)
-    sources = {**dict.fromkeys(names, out_dir), **kept}
     if with_rounds:
         if dagger.rounds:
             last_round = run_dagger(cfg, dagger, out_dir, train_one)
         else:
             last_round = run_rounds(cfg, onpolicy, out_dir, train_one)
-        sources = {name: last_round for name in names}
+        sources = dict.fromkeys(names, last_round)
+    else:
+        sources = {**dict.fromkeys(names, out_dir), **kept}
     export_to = cfg.get("export_to")
     if export_to and distributed.is_main():
         check_export_to(export_to)  # again: the folder may have changed during the training
