@@ -77,6 +77,7 @@ ROWS = (
     "cconv_exact",
     "cconv_original_exact",
     "cconv_finetuned_exact",
+    "cconv_finetuned_collision",
     "gns_dagger",
     "gns",
     "cconv",
@@ -85,7 +86,7 @@ ROWS = (
     "fgn",
     "fgn_original",
 )
-"""The rows, new ones (an end-to-end model + MPS's exact collision and pressure after each step) first."""
+"""The rows, new ones (an end-to-end model + MPS's exact stages after each step) first."""
 
 EXACT_SUFFIX = "_exact"
 # The runs need only the metrics and the rollout: no figures, no one-step errors (an exact MPS step per frame)

@@ -365,6 +365,24 @@ def test_the_tables_list_the_exact_after_rows_under_their_own_labels():
         assert build_simulator(cfg).name == f"{base} + exact collision + MPS pressure"
 
 
+def test_the_fine_tuned_cconv_has_a_collision_only_row_labelled_so():
+    """The row that completes the dam with the least exact work: collision rule only, no projection."""
+    from benchmarks.tables.config import compose_config
+    from benchmarks.tables.simulators import simulator
+
+    key = "cconv_finetuned_collision"
+    sim = simulator(key)
+    assert (sim.label, sim.model) == ("CConv, DLF's weights fine-tuned here + exact collision", "cconv_finetuned")
+    assert "no pressure projection" in sim.note and "not the plain" in sim.note
+    assert sim.rows == (f"table2_{key}", f"table3_dam_{key}", f"table3_waterfall_{key}")
+    for row in sim.rows:
+        cfg = compose_config([f"experiment={row}"])
+        assert (cfg.model.exact_after.collision, cfg.model.exact_after.pressure) == (True, False)
+    assert build_simulator(compose_config([f"experiment=table3_dam_{key}"])).name == (
+        "cconv_finetuned + exact collision"
+    )
+
+
 def test_gns_dagger_ships_its_weights_and_its_exact_row_runs_them_with_k3():
     """``model=gns_dagger`` loads the DAgger weights shipped beside their card, under its own name; its
     exact row is the one that completes the dam: collision and pressure, K = 3 at relaxation 0.5."""
