@@ -335,6 +335,31 @@ def test_random_column_collapses_stand_at_rest_against_a_side_wall():
     assert 0 < sum(size[2] == 20 for size in mixed) < 12
 
 
+def test_random_edge_blocks_are_released_against_a_wall_with_their_top_at_its_top_edge():
+    layouts = [random_layout(seed=s, edge_probability=1.0) for s in range(24)]
+    walls = set()
+    for layout in layouts:
+        block = layout.fluid[0]
+        lo, hi = np.array(block.lower), np.array(block.upper)
+        assert block.size == (25, 25, 10) and block.velocity == (0.0, 0.0, 0.0)
+        assert hi[2] == 40 == layout.container.height and lo[2] == 31  # top level with the walls' top edge
+        touching = [(a, side) for a in (0, 1) for side, at in ((0, lo[a] == 1), (1, hi[a] == 79)) if at]
+        assert touching  # against at least one side wall
+        walls |= set(touching)
+        for shape in layout.obstacles:
+            o_lo, o_hi = shape.bbox()
+            assert (o_hi < lo).any() or (np.maximum(o_lo, 0) > hi).any()
+    assert walls == {(0, 0), (0, 1), (1, 0), (1, 1)}
+    # Off by default, and a column scene wins the first draw: the other scenes' draws are unchanged
+    assert random_layout(seed=3).description == random_layout(seed=3, edge_probability=0.0).description
+    both = [random_layout(seed=s, column_probability=1.0, edge_probability=1.0) for s in range(4)]
+    assert [b.description for b in both] == [
+        random_layout(seed=s, column_probability=1.0).description for s in range(4)
+    ]
+    with pytest.raises(SceneError, match=r"edge_probability must be in \[0, 1\], got -0.5"):
+        random_layout(seed=0, edge_probability=-0.5)
+
+
 def test_random_state_carries_the_drawn_velocity():
     layout = random_layout(seed=3, **SMALL)
     state = layout.build()

@@ -294,6 +294,27 @@ def _random_obstacle(
     return shape, np.array([cx - r, cy - r, 0]), np.array([cx + r, cy + r, 2 * r])
 
 
+def _against_wall(
+    rng: np.random.Generator, across: int, along: int, height: int, tank: tuple[int, int], bottom: int, what: str
+) -> FluidBlock:
+    """A block at rest against a drawn side wall (which of the four, then in a corner of it or anywhere).
+
+    ``across`` particles from the wall inwards, ``along`` along it, ``height`` up from lattice z ``bottom``.
+    """
+    normal = int(rng.integers(2))  # the wall's axis: x or y
+    side = int(rng.integers(2))  # the low or the high wall
+    place = int(rng.integers(3))  # low corner, high corner, anywhere along the wall
+    size = [0, 0, height]
+    size[normal], size[1 - normal] = across, along
+    if size[0] > tank[0] - 1 or size[1] > tank[1] - 1:
+        raise SceneError(f"random: {what} does not fit in tank_size {tank}")
+    lower = [0, 0, bottom]
+    lower[normal] = 1 if side == 0 else tank[normal] - across
+    span = tank[1 - normal] - along  # lattice starts 1 .. span
+    lower[1 - normal] = (1, span, int(rng.integers(1, span + 1)))[place]
+    return FluidBlock(lower=tuple(lower), size=tuple(size))
+
+
 def _wall_column(
     rng: np.random.Generator, column_size: Sequence[int], tank: tuple[int, int], wall_height: int
 ) -> FluidBlock:
@@ -304,18 +325,17 @@ def _wall_column(
             f"random: column height {height} l0 needs walls of 2 x {height} l0 (Ritter's run-up bound), "
             f"wall_height is {wall_height}"
         )
-    normal = int(rng.integers(2))  # the wall's axis: x or y
-    side = int(rng.integers(2))  # the low or the high wall
-    place = int(rng.integers(3))  # low corner, high corner, anywhere along the wall
-    size = [0, 0, height]
-    size[normal], size[1 - normal] = thin, along
-    if size[0] > tank[0] - 1 or size[1] > tank[1] - 1:
-        raise SceneError(f"random: column_size {tuple(column_size)} does not fit in tank_size {tank}")
-    lower = [0, 0, 1]
-    lower[normal] = 1 if side == 0 else tank[normal] - thin
-    span = tank[1 - normal] - along  # lattice starts 1 .. span
-    lower[1 - normal] = (1, span, int(rng.integers(1, span + 1)))[place]
-    return FluidBlock(lower=tuple(lower), size=tuple(size))
+    return _against_wall(rng, thin, along, height, tank, 1, f"column_size {tuple(column_size)}")
+
+
+def _wall_edge_block(
+    rng: np.random.Generator, fluid_size: Sequence[int], tank: tuple[int, int], wall_height: int
+) -> FluidBlock:
+    """The fluid block released at rest against a drawn side wall, its top level with the wall's top edge."""
+    fx, fy, fz = fluid_size
+    return _against_wall(
+        rng, fx, fy, fz, tank, wall_height - fz + 1, f"fluid_size {tuple(fluid_size)} against a wall"
+    )
 
 
 def random_layout(
@@ -331,6 +351,7 @@ def random_layout(
     n_dummy: int = 2,
     column_probability: float = 0.0,
     column_size: Sequence[int] = (10, 25, 20),
+    edge_probability: float = 0.0,
 ) -> Scene:
     """Random training scene after the paper (A.2): one fluid block and one or two obstacles in a box.
 
@@ -347,6 +368,12 @@ def random_layout(
       as a dam's column against one: a model that never saw hydrostatic pressure on a side wall does
       not learn to hold it (GNS's dam rollouts, ``baselines/gns/weights/MODEL_CARD.md``). The default
       column is the dam's height (20 l0), so the tank's 40 l0 walls are Ritter's ``2 h`` bound;
+    * else, with probability ``edge_probability`` (drawn only when it is > 0), the ``fluid_size`` block
+      released at rest in the air against a drawn side wall (in a corner of it or anywhere along it), its
+      top level with the wall's top edge: fluid beside the end of a wall, as at the water fall's start.
+      Nothing in the paper's scenes puts fluid there (their tops stay at ``max_fluid_top``, half the
+      walls), and DeepLagrangianFluids' network fine-tuned without it pushes such fluid up and over the
+      edge (``baselines/cconv/weights/dlf_finetuned/MODEL_CARD.md``);
     * ``n_obstacles`` obstacles (default: 1 or 2, drawn), each of a kind drawn from
       ``obstacle_kinds``, standing on the floor (sunk into it, see :func:`sink_depth`), inside
       the tank and not touching the fluid block or each other: box (footprint 6-20 l0, height 6-25),
@@ -369,14 +396,18 @@ def random_layout(
         n_dummy: dummy layers.
         column_probability: chance in [0, 1] that the scene is a column collapse.
         column_size: (3,) the column's particles along its thin side, along the wall and up.
+        edge_probability: chance in [0, 1] that a scene that is not a column collapse is a block
+            released against a wall's top edge.
 
     Returns:
         the scene; its ``description`` says what was drawn.
     """
     seed = check_positive_int("seed", seed, minimum=0)
     column_probability = float(column_probability)
-    if not 0.0 <= column_probability <= 1.0:
-        raise SceneError(f"column_probability must be in [0, 1], got {column_probability}")
+    edge_probability = float(edge_probability)
+    for name, chance in (("column_probability", column_probability), ("edge_probability", edge_probability)):
+        if not 0.0 <= chance <= 1.0:
+            raise SceneError(f"{name} must be in [0, 1], got {chance}")
     lx, ly = as_vector("tank_size", tank_size, 2, integer=True, positive=True)
     wall_height = check_positive_int("wall_height", wall_height)
     fx, fy, fz = as_vector("fluid_size", fluid_size, 3, integer=True, positive=True)
@@ -397,6 +428,10 @@ def random_layout(
     if column_probability > 0.0 and rng.uniform() < column_probability:
         block = _wall_column(rng, column_size, (lx, ly), wall_height)
         fx, fy, fz = block.size
+    elif edge_probability > 0.0 and rng.uniform() < edge_probability:
+        if fz > wall_height:
+            raise SceneError(f"random: fluid_size {(fx, fy, fz)} is taller than wall_height {wall_height}")
+        block = _wall_edge_block(rng, (fx, fy, fz), (lx, ly), wall_height)
     else:
         lower = (
             int(rng.integers(1, lx - fx + 1)),
