@@ -372,7 +372,10 @@ def test_the_fine_tuned_cconv_has_a_collision_only_row_labelled_so():
 
     key = "cconv_finetuned_collision"
     sim = simulator(key)
-    assert (sim.label, sim.model) == ("CConv, DLF's weights fine-tuned here + exact collision", "cconv_finetuned")
+    assert (sim.label, sim.model) == (
+        "CConv, DLF's weights fine-tuned here + exact collision",
+        "cconv_finetuned",
+    )
     assert "no pressure projection" in sim.note and "not the plain" in sim.note
     assert sim.rows == (f"table2_{key}", f"table3_dam_{key}", f"table3_waterfall_{key}")
     for row in sim.rows:

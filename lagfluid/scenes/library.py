@@ -295,7 +295,13 @@ def _random_obstacle(
 
 
 def _against_wall(
-    rng: np.random.Generator, across: int, along: int, height: int, tank: tuple[int, int], bottom: int, what: str
+    rng: np.random.Generator,
+    across: int,
+    along: int,
+    height: int,
+    tank: tuple[int, int],
+    bottom: int,
+    what: str,
 ) -> FluidBlock:
     """A block at rest against a drawn side wall (which of the four, then in a corner of it or anywhere).
 
