@@ -457,7 +457,8 @@ def test_bad_inputs_are_clear_errors(dataset, tmp_path):
     with pytest.raises(LagfluidError, match="leave no training scene"):
         _generate(tmp_path / "x", "num_scenes=2", "data.splits.valid=0.5", "data.splits.test=0.5")
     assert check_command_line(["data=huge"]) == (
-        "lagfluid: unknown data 'huge'; available: cpu, cpu_onpolicy, dlf_frames, dlf_frames_edge, paper, tiny"
+        "lagfluid: unknown data 'huge'; available: cpu, cpu_onpolicy, dlf_frames, dlf_frames_edge, paper, "
+        "tiny"
     )
 
 
