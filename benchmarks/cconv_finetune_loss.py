@@ -58,13 +58,13 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--results", default=str(RESULTS))
     args = ap.parse_args(argv)
+    if min(args.frames) < 1:
+        ap.error(f"--frames must be >= 1, got {min(args.frames)}")
     torch.set_num_threads(args.threads)
     load = os.getloadavg()[0]
     tuned, _ = load_cconv(Path(args.weights) / "cconv.pt")
     rows = []
     for frames in args.frames:
-        if frames < 1:
-            ap.error(f"--frames must be >= 1, got {frames}")
         cfg = compose_config(["experiment=finetune_cconv_dlf", f"train.unroll_frames={frames}"])
         trainable = CConvTrainable(cfg)
         start = trainable.build_network()  # their published weights with the data's gravity

@@ -334,16 +334,6 @@ def _wall_column(
     return _against_wall(rng, thin, along, height, tank, 1, f"column_size {tuple(column_size)}")
 
 
-def _wall_edge_block(
-    rng: np.random.Generator, fluid_size: Sequence[int], tank: tuple[int, int], wall_height: int
-) -> FluidBlock:
-    """The fluid block released at rest against a drawn side wall, its top level with the wall's top edge."""
-    fx, fy, fz = fluid_size
-    return _against_wall(
-        rng, fx, fy, fz, tank, wall_height - fz + 1, f"fluid_size {tuple(fluid_size)} against a wall"
-    )
-
-
 def random_layout(
     seed: int = 0,
     tank_size: Sequence[int] = (80, 80),
@@ -430,14 +420,15 @@ def random_layout(
             f"random: fluid_size {(fx, fy, fz)} does not fit in tank_size {(lx, ly)} below "
             f"max_fluid_top {top}"
         )
+    if edge_probability > 0.0 and fz > wall_height:  # checked before any draw: every seed would need it
+        raise SceneError(f"random: fluid_size {(fx, fy, fz)} is taller than wall_height {wall_height}")
     rng = np.random.default_rng(seed)
     if column_probability > 0.0 and rng.uniform() < column_probability:
         block = _wall_column(rng, column_size, (lx, ly), wall_height)
         fx, fy, fz = block.size
     elif edge_probability > 0.0 and rng.uniform() < edge_probability:
-        if fz > wall_height:
-            raise SceneError(f"random: fluid_size {(fx, fy, fz)} is taller than wall_height {wall_height}")
-        block = _wall_edge_block(rng, (fx, fy, fz), (lx, ly), wall_height)
+        # the block against a wall, its top level with the wall's top edge
+        block = _against_wall(rng, fx, fy, fz, (lx, ly), wall_height - fz + 1, f"fluid_size {(fx, fy, fz)}")
     else:
         lower = (
             int(rng.integers(1, lx - fx + 1)),
