@@ -662,3 +662,11 @@ def test_the_shipped_weights_warn_once_outside_their_training_range(caplog):
         "model gns: the gns network was trained on viscosity 1e-06 m^2/s; this scene has 0.1: expect larger "
         "errors than its model card states"
     ]  # dt is the network's own frame spacing: never warned about
+
+
+def test_the_unrolled_loss_windows_hold_u_minus_1_more_frames(tiny_data):
+    h = SMALL["history"]
+    train_items, _ = _trainable(unroll_loss=4).datasets(tiny_data)
+    assert train_items[len(train_items) - 1].history.shape[1] == h + 3
+    pushed = _trainable(unroll_loss=2, pushforward={"unrolls": [0, 3], "probs": [1, 1]})
+    assert pushed.datasets(tiny_data)[0][0].history.shape[1] == h + 3  # the longer of the two

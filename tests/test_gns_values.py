@@ -266,3 +266,59 @@ def test_the_pushforward_starts_unroll_frames_before_the_last(monkeypatch, unrol
         torch.testing.assert_close(window, expected, msg=f"window {xs}")
         torch.testing.assert_close(pos, _t([[xs[-1], 0.3, z_of[xs[-1]]], WALL_POS]))
     torch.testing.assert_close(got, _standardised([target]))
+
+
+@pytest.mark.parametrize(
+    ("steps", "windows", "targets"),
+    [
+        # the one-step loss: the window of the last H + 1 stored frames, the true acceleration
+        (1, [[3, 6, 10]], [[4.0, 0.0, -2.0]]),
+        # from frames 1..3: the true acceleration, then the model's frame x 9, z -2.5 (a = 0) against the true
+        # frame 5: ((15 - 18 + 6) / 0.25, 0, (-5.25 + 5 - 1.25) / 0.25)
+        (2, [[1, 3, 6], [3, 6, 9]], [[4.0, 0.0, -2.0], [12.0, 0.0, -6.0]]),
+        # from frames 0..2: the model's x 5, 7 (z -0.75, -1.5) against the true frames 4 (x 10) and 5 (x 15)
+        (3, [[0, 1, 3], [1, 3, 5], [3, 5, 7]], [[4.0, 0.0, -2.0], [12.0, 0.0, -6.0], [24.0, 0.0, -12.0]]),
+        # the window holds H + 2 earlier frames: at most 3 steps
+        (5, [[0, 1, 3], [1, 3, 5], [3, 5, 7]], [[4.0, 0.0, -2.0], [12.0, 0.0, -6.0], [24.0, 0.0, -12.0]]),
+    ],
+)
+def test_the_unrolled_loss_steps_the_model_from_u_minus_1_frames_before(monkeypatch, steps, windows, targets):
+    """``train.unroll_loss`` U: U network calls, each target the model's last two frames to the true next."""
+    z_of = {0: 1.0, 1: 0.75, 3: 0.0, 6: -1.25, 10: -3.0, 5: -0.75, 7: -1.5, 9: -2.5}
+    trainable = _trainable(unroll_loss=steps)
+    net = _hand_net().train()
+    calls = _record_steps(monkeypatch, net)
+    _, got = trainable.predict(net, Batch.from_data_list([_window_item(4)]))
+    assert len(calls) == len(windows)
+    for (pos, window), xs in zip(calls, windows, strict=True):
+        torch.testing.assert_close(window, _t([[[x, 0.3, z_of[x]] for x in xs]]), msg=f"window {xs}")
+        torch.testing.assert_close(pos, _t([[xs[-1], 0.3, z_of[xs[-1]]], WALL_POS]))
+    torch.testing.assert_close(got, _standardised(targets))
+    net.eval()  # outside training: the one-step loss
+    assert trainable.predict(net, Batch.from_data_list([_window_item(4)]))[1].shape == (1, 3)
+
+
+def test_the_unrolled_loss_reaches_a_steps_weights_through_the_later_steps_positions():
+    """The second step's target is made of the first step's prediction: it carries that step's gradient."""
+    net = _hand_net().train()
+    _, target = _trainable(unroll_loss=2).predict(net, Batch.from_data_list([_window_item(4)]))
+    params = [p for p in net.parameters() if p.requires_grad]
+
+    def gradient(row):
+        grads = torch.autograd.grad(target[row].sum(), params, retain_graph=True, materialize_grads=True)
+        return sum(float(g.abs().sum()) for g in grads)
+
+    assert gradient(0) == 0.0  # the stored frames' target
+    assert gradient(1) > 0  # the model's first step moved the second step's start
+    _, one_step = _trainable().predict(net, Batch.from_data_list([_window_item(4)]))
+    assert not one_step.requires_grad
+
+
+@pytest.mark.parametrize("bad", [0, 1.5, True, "2"])
+def test_a_bad_unroll_loss_is_refused_by_name(bad):
+    with pytest.raises(
+        Exception, match=f"train.unroll_loss must be a whole number of model steps >= 1: {bad!r}$"
+    ):
+        _trainable(unroll_loss=bad)
+    assert _trainable(unroll_loss=3).identity()["unroll_loss"] == 3
+    assert "unroll_loss" not in _trainable().identity()  # earlier checkpoints keep their identity

@@ -16,6 +16,14 @@ Per batch:
    ``(x_{t+1} - 2 x_t + x_{t-1}) / dt^2`` (:func:`lagfluid.integrate.acceleration_from_positions`, the
    inverse of the rollout's semi-implicit Euler) restores the true next velocity.
 3. **Loss**: MSE of the standardised acceleration of the fluid particles (boundary nodes carry none).
+4. **Unrolled loss** (``train.unroll_loss`` U > 1, optional): the learning step starts ``U - 1`` frames
+   earlier and the model rolls ``U`` steps *with* gradient through its own positions (semi-implicit Euler),
+   each step's target the acceleration that takes the model's last two frames to the true next frame (shifted
+   by the start window's last noise). Step k's acceleration error is its position error over
+   ``dt^2``, so the loss is the mean standardised position error of the ``U`` steps, and a step is answerable
+   for the steps after it (the pushforward's steps carry no gradient). U = 1 is the one-step loss above.
+   The windows then hold ``H + max(K, U - 1)`` earlier frames; windows near a trajectory's start unroll
+   fewer steps. The pushforward, when drawn, runs before the first of the ``U`` steps.
 
 Optionally (``train.horizontal_symmetries``), each batch first goes through one of the 8 horizontal
 symmetries of its tank (:class:`lagfluid.data.symmetry.HorizontalSymmetry`, drawn uniformly): GNS is not
@@ -146,7 +154,8 @@ class GNSTrainable:
 
     Reads ``cfg.model.gns`` (network options) and ``cfg.train``: ``noise_std`` (l0, random-walk noise at the
     last input frame), ``pushforward`` (``unrolls`` list, ``probs`` weights, ``start`` the batch after
-    which unrolls are drawn) and ``horizontal_symmetries`` (bool, default false: augment, module doc).
+    which unrolls are drawn), ``horizontal_symmetries`` (bool, default false: augment, module doc) and
+    ``unroll_loss`` (U >= 1 model steps with gradient in a training batch's loss, default 1: module doc).
     """
 
     name = NAME
@@ -175,6 +184,10 @@ class GNSTrainable:
         if isinstance(stride, bool) or not isinstance(stride, int) or stride < 1:
             raise ConfigError(f"train.frame_stride must be a whole number of stored frames >= 1: {stride!r}")
         self.frame_stride = stride
+        steps = tcfg.get("unroll_loss", 1)
+        if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
+            raise ConfigError(f"train.unroll_loss must be a whole number of model steps >= 1: {steps!r}")
+        self.loss_steps = steps
 
     # ------------------------------------------------------------------------ Trainable
     def datasets(self, data_dir: Path) -> tuple[Any, Any]:
@@ -185,7 +198,8 @@ class GNSTrainable:
         A DAgger dataset (``train.dagger``) gives the model's own frames and MPS's next positions
         (:class:`~lagfluid.data.expert_windows.ExpertWindows`), items of the same fields.
         """
-        frames, first, stride = self.history + max(self.unrolls), self.history, self.frame_stride
+        earlier = max(max(self.unrolls), self.loss_steps - 1)
+        frames, first, stride = self.history + earlier, self.history, self.frame_stride
         return (
             trajectory_windows(data_dir, "train", history=frames, first=first, stride=stride),
             trajectory_windows(data_dir, "valid", history=frames, first=first, stride=stride),
@@ -228,7 +242,10 @@ class GNSTrainable:
         }
 
     def predict(self, net: nn.Module, batch: Batch) -> tuple[Tensor, Tensor]:
-        """Standardised predicted and target accelerations of the fluid, (Nf, 3) each."""
+        """Standardised predicted and target accelerations of the fluid, (U Nf, 3) each.
+
+        The ``U`` unrolled steps' rows one after the other (module doc); U = 1 outside training.
+        """
         if net.training and self.symmetries:
             batch = symmetric_batch(batch, HorizontalSymmetry.draw())
         fluid = batch.ptype == ParticleType.FLUID
@@ -237,24 +254,46 @@ class GNSTrainable:
         sample = batch.batch if isinstance(batch, Batch) else None
         bounds = _bounds(batch)
         frames = torch.cat([batch.history, batch.pos[fluid].unsqueeze(1)], dim=1)  # (Nf, H + K + 1, 3)
-        window = frames[:, -(self.history + 1) :]
-        pos = batch.pos
         training = net.training
+        most = self._most_unroll(batch)
+        steps = min(self.loss_steps, most + 1) if training else 1
+        later = steps - 1  # the learning steps start this many frames before the window's last
+        # the true frames each learning step aims at: the stored ones after the start, then the target
+        truth = torch.cat([frames[:, frames.shape[1] - later :], batch.y.unsqueeze(1)], dim=1)  # (Nf, U, 3)
+        end = frames.shape[1] - later
+        window = frames[:, end - self.history - 1 : end]
+        pos = batch.pos
+        if later:
+            pos = pos.clone()
+            pos[fluid] = window[:, -1]
         if training:
             net.trained_batches += 1
-            unroll = min(self._draw_unroll(int(net.trained_batches)), self._most_unroll(batch))
+            unroll = min(self._draw_unroll(int(net.trained_batches)), most - later)
             if unroll:
-                pos, window = self._pushforward(net, batch, fluid, frames, unroll, dt, l0, bounds, sample)
-        target_next = batch.y
+                pos, window = self._pushforward(
+                    net, batch, fluid, frames, unroll, later, dt, l0, bounds, sample
+                )
         if training and self.noise_std > 0:
             noise = random_walk_noise(tuple(window.shape), self.noise_std * l0).to(window)
             window = window + noise
-            target_next = target_next + noise[:, -1]
+            truth = truth + noise[:, -1:]
             pos = pos.clone()
             pos[fluid] = window[:, -1]
-        target = acceleration_from_positions(window[:, -2], window[:, -1], target_next, dt)
-        prediction = step_acceleration(net, pos, fluid, window, dt, l0, bounds, sample)
-        return prediction, net.acceleration(target)
+        predictions, targets = [], []
+        for k in range(steps):
+            if k:  # the model's own step, with gradient: later steps' errors reach this one's weights
+                acc = net.acceleration.inverse(predictions[-1])
+                nxt, _ = semi_implicit_euler(window[:, -1], (window[:, -1] - window[:, -2]) / dt, acc, dt)
+                window = torch.cat([window[:, 1:], nxt.unsqueeze(1)], dim=1)
+                pos = pos.clone()
+                pos[fluid] = nxt
+            targets.append(
+                net.acceleration(acceleration_from_positions(window[:, -2], window[:, -1], truth[:, k], dt))
+            )
+            predictions.append(step_acceleration(net, pos, fluid, window, dt, l0, bounds, sample))
+        if steps == 1:
+            return predictions[0], targets[0]
+        return torch.cat(predictions), torch.cat(targets)
 
     def identity(self) -> dict[str, Any]:
         """Noise and pushforward settings (they change the trained weights)."""
@@ -266,6 +305,8 @@ class GNSTrainable:
             identity["horizontal_symmetries"] = True
         if self.frame_stride != 1:  # likewise
             identity["frame_stride"] = self.frame_stride
+        if self.loss_steps != 1:  # likewise
+            identity["unroll_loss"] = self.loss_steps
         return identity
 
     # ------------------------------------------------------------------------ helpers
@@ -290,13 +331,17 @@ class GNSTrainable:
         fluid: Tensor,
         frames: Tensor,
         unroll: int,
+        later: int,
         dt: float,
         l0: float,
         bounds: Tensor | None,
         sample: Tensor | None,
     ) -> tuple[Tensor, Tensor]:
-        """Roll ``unroll`` steps from that many frames earlier; the positions and the last H + 1 frames."""
-        end = frames.shape[1] - unroll
+        """Roll ``unroll`` steps from ``unroll + later`` frames before the last.
+
+        Returns the positions and the last H + 1 frames (ending ``later`` frames before the window's last).
+        """
+        end = frames.shape[1] - unroll - later
         window = frames[:, end - self.history - 1 : end]
         pos = batch.pos.clone()
         for _ in range(unroll):
