@@ -72,12 +72,14 @@ FRAME_INTERVAL = 0.04  # s, as the tables
 L0 = 0.05  # m, every scene's particle spacing (the training data's)
 
 ROWS = (
+    "gns_unroll_exact",
     "gns_dagger_exact",
     "gns_exact",
     "cconv_exact",
     "cconv_original_exact",
     "cconv_finetuned_exact",
     "cconv_finetuned_collision",
+    "gns_unroll",
     "gns_dagger",
     "gns",
     "cconv",

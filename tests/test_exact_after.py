@@ -413,6 +413,38 @@ def test_gns_dagger_ships_its_weights_and_its_exact_row_runs_them_with_k3():
     }
 
 
+def test_gns_unroll_ships_its_weights_beside_the_daggers_and_its_rows_say_so():
+    """``model=gns_unroll`` loads its own shipped weights (not the DAgger ones it started from), and its
+    rows are labelled with both levers; the exact row is the dam-completing K = 3 one."""
+    from baselines.gns.simulator import DAGGER, UNROLL
+    from benchmarks.tables.config import compose_config
+    from benchmarks.tables.simulators import all_simulators, simulator
+
+    assert (UNROLL / "MODEL_CARD.md").is_file()
+    sim = build_simulator(compose_config(["model=gns_unroll", "scene=dam"]))
+    assert (sim.name, sim.weights, sim.dt) == ("gns_unroll", str(UNROLL / "gns.pt"), 0.008)
+    assert sim.weights != str(DAGGER / "gns.pt")
+    plain, exact = simulator("gns_unroll"), simulator("gns_unroll_exact")
+    assert (plain.label, plain.model, exact.model) == (
+        "GNS (CPU size), DAgger + unrolled loss",
+        "gns_unroll",
+        "gns_unroll",
+    )
+    assert (
+        exact.label == "GNS (CPU size), DAgger + unrolled loss + exact collision + MPS pressure (K=3, w=0.5)"
+    )
+    assert "not the plain row" in exact.note and "unroll_loss=4" in plain.note
+    keys = [s.key for s in all_simulators()]
+    assert keys.index("gns_dagger_exact") < keys.index("gns_unroll") == keys.index("gns_unroll_exact") - 1
+    cfg = compose_config(["experiment=table3_dam_gns_unroll_exact"])
+    assert dict(cfg.model.exact_after) == {
+        "collision": True,
+        "pressure": True,
+        "iterations": 3,
+        "relaxation": 0.5,
+    }
+
+
 def test_the_benchmark_rolls_out_the_weights_it_is_given():
     """``benchmarks.exact_after --weights DIR`` runs every row on ``model.weights=DIR`` (the GNS
     frame-interval measurement's 16 ms network), none without it (the shipped weights)."""

@@ -46,6 +46,8 @@ SHIPPED = Path(__file__).resolve().parent / "weights"
 """The shipped weights (``gns.pt``) and their model card."""
 DAGGER = SHIPPED / "dagger"
 """``model=gns_dagger``'s shipped weights: GNS trained on its own rollouts' states (DAgger; card there)."""
+UNROLL = SHIPPED / "unroll"
+"""``model=gns_unroll``'s shipped weights: the DAgger weights fine-tuned on a loss over 4 unrolled steps."""
 BYTES_PER_EDGE = 1300.0
 """Memory per graph edge of a step (latent edge features of every block), rounded up from the measurement."""
 
@@ -302,6 +304,11 @@ def build_simulator(cfg: Any) -> GNSSimulator:
 def build_dagger(cfg: Any) -> GNSSimulator:
     """``model=gns_dagger``: GNS after DAgger rounds (:data:`DAGGER`; ``model.weights`` another folder)."""
     return _trained(cfg, "gns_dagger", DAGGER)
+
+
+def build_unroll(cfg: Any) -> GNSSimulator:
+    """``model=gns_unroll``: the DAgger weights fine-tuned with ``train.unroll_loss`` (:data:`UNROLL`)."""
+    return _trained(cfg, "gns_unroll", UNROLL)
 
 
 def _trained(cfg: Any, name: str, shipped: Path) -> GNSSimulator:
