@@ -126,6 +126,17 @@ def step_acceleration(
     return fluid_acceleration(net, pos, velocities, graph, bounds, radius)
 
 
+def next_window(net: GNSNet, window: Tensor, standardised: Tensor, dt: float) -> Tensor:
+    """The fluid's last ``H + 1`` frames (Nf, H + 1, 3) after one model step.
+
+    ``standardised`` (Nf, 3) is the network's acceleration; semi-implicit Euler from the window's last frame
+    and velocity, as a rollout steps.
+    """
+    acc = net.acceleration.inverse(standardised)
+    nxt, _ = semi_implicit_euler(window[:, -1], (window[:, -1] - window[:, -2]) / dt, acc, dt)
+    return torch.cat([window[:, 1:], nxt.unsqueeze(1)], dim=1)
+
+
 def symmetric_batch(batch: Data, symmetry: HorizontalSymmetry) -> Data:
     """A copy of a window batch with positions, history, target and bounds mapped by ``symmetry``.
 
@@ -282,11 +293,9 @@ class GNSTrainable:
         predictions, targets = [], []
         for k in range(steps):
             if k:  # the model's own step, with gradient: later steps' errors reach this one's weights
-                acc = net.acceleration.inverse(predictions[-1])
-                nxt, _ = semi_implicit_euler(window[:, -1], (window[:, -1] - window[:, -2]) / dt, acc, dt)
-                window = torch.cat([window[:, 1:], nxt.unsqueeze(1)], dim=1)
+                window = next_window(net, window, predictions[-1], dt)
                 pos = pos.clone()
-                pos[fluid] = nxt
+                pos[fluid] = window[:, -1]
             targets.append(
                 net.acceleration(acceleration_from_positions(window[:, -2], window[:, -1], truth[:, k], dt))
             )
@@ -346,10 +355,9 @@ class GNSTrainable:
         pos = batch.pos.clone()
         for _ in range(unroll):
             pos[fluid] = window[:, -1]
-            acc = net.acceleration.inverse(step_acceleration(net, pos, fluid, window, dt, l0, bounds, sample))
-            vel = (window[:, -1] - window[:, -2]) / dt
-            nxt, _ = semi_implicit_euler(window[:, -1], vel, acc, dt)
-            window = torch.cat([window[:, 1:], nxt.unsqueeze(1)], dim=1)
+            window = next_window(
+                net, window, step_acceleration(net, pos, fluid, window, dt, l0, bounds, sample), dt
+            )
         pos[fluid] = window[:, -1]
         return pos, window
 
