@@ -16,6 +16,7 @@ import baselines.gns.trainable as gns_trainable
 from baselines.gns.network import GNSNet
 from baselines.gns.simulator import GNSSimulator
 from baselines.gns.trainable import GNSTrainable, step_acceleration
+from lagfluid.errors import ConfigError
 from lagfluid.state import ParticleState, ParticleType, SceneParams
 
 F64 = torch.float64
@@ -317,7 +318,7 @@ def test_the_unrolled_loss_reaches_a_steps_weights_through_the_later_steps_posit
 @pytest.mark.parametrize("bad", [0, 1.5, True, "2"])
 def test_a_bad_unroll_loss_is_refused_by_name(bad):
     with pytest.raises(
-        Exception, match=f"train.unroll_loss must be a whole number of model steps >= 1: {bad!r}$"
+        ConfigError, match=f"train.unroll_loss must be a whole number of model steps >= 1: {bad!r}$"
     ):
         _trainable(unroll_loss=bad)
     assert _trainable(unroll_loss=3).identity()["unroll_loss"] == 3

@@ -92,6 +92,13 @@ def _bounds(data: Data) -> Tensor | None:
     return bounds[data.batch] if isinstance(data, Batch) else bounds[0]
 
 
+def _placed(pos: Tensor, fluid: Tensor, frame: Tensor) -> Tensor:
+    """A copy of the (P, 3) positions with the fluid rows set to ``frame`` (Nf, 3); autograd-safe."""
+    out = pos.clone()
+    out[fluid] = frame
+    return out
+
+
 def _trajectory_history(item: Data) -> Tensor:
     """The history frames (Nf, h, 3) of one window that are its trajectory's (not frame 0's copies)."""
     before = getattr(item, "frames_before", None)
@@ -273,10 +280,7 @@ class GNSTrainable:
         truth = torch.cat([frames[:, frames.shape[1] - later :], batch.y.unsqueeze(1)], dim=1)  # (Nf, U, 3)
         end = frames.shape[1] - later
         window = frames[:, end - self.history - 1 : end]
-        pos = batch.pos
-        if later:
-            pos = pos.clone()
-            pos[fluid] = window[:, -1]
+        pos = _placed(batch.pos, fluid, window[:, -1]) if later else batch.pos
         if training:
             net.trained_batches += 1
             unroll = min(self._draw_unroll(int(net.trained_batches)), most - later)
@@ -288,20 +292,16 @@ class GNSTrainable:
             noise = random_walk_noise(tuple(window.shape), self.noise_std * l0).to(window)
             window = window + noise
             truth = truth + noise[:, -1:]
-            pos = pos.clone()
-            pos[fluid] = window[:, -1]
+            pos = _placed(pos, fluid, window[:, -1])
         predictions, targets = [], []
         for k in range(steps):
             if k:  # the model's own step, with gradient: later steps' errors reach this one's weights
                 window = next_window(net, window, predictions[-1], dt)
-                pos = pos.clone()
-                pos[fluid] = window[:, -1]
+                pos = _placed(pos, fluid, window[:, -1])
             targets.append(
                 net.acceleration(acceleration_from_positions(window[:, -2], window[:, -1], truth[:, k], dt))
             )
             predictions.append(step_acceleration(net, pos, fluid, window, dt, l0, bounds, sample))
-        if steps == 1:
-            return predictions[0], targets[0]
         return torch.cat(predictions), torch.cat(targets)
 
     def identity(self) -> dict[str, Any]:
