@@ -147,11 +147,14 @@ def test_the_tables_list_and_run_the_plugin(site, trained, tmp_path):
 
     assert "tiny_mlp" in [s.key for s in all_simulators()]
     results, runs = tmp_path / "results", tmp_path / "runs"
-    assert (
-        main(["--quick", "--threads", "1", "--results", str(results), "--runs-dir", str(runs), "--no-readme"])
-        == 0
-    )
-    report = (results / "tables_quick_report.md").read_text()
+    # what a plugin's author runs: its rows beside MPS and FGN, not the whole zoo's (0.4 min against 2.1)
+    argv = ["--quick", "--simulators", "tiny_mlp", "--threads", "1", "--results", str(results)]
+    assert main([*argv, "--runs-dir", str(runs)]) == 0
+    assert not (results / "tables_quick_report.md").exists()  # the whole zoo's files are not replaced
+    report = (results / "tables_quick_tiny_mlp_report.md").read_text()
+    assert "only tiny_mlp beside MPS and FGN (--simulators)" in report
+    listed = {line.split(" | ")[1] for line in report.splitlines() if line.startswith("| `dam_small`")}
+    assert listed == {"Ground truth (MPS)", "FGN", "tiny_mlp"}, listed
     rows = [line for line in report.splitlines() if "| tiny_mlp |" in line]
     # Tables 1/3 (dam and water fall, against the same MPS references as every other row), Table 2 (time
     # per step, with its parameter count) and the trade-off table; the tiny net may be stopped by the guard

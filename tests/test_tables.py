@@ -475,6 +475,28 @@ def test_device_option_is_checked_and_keeps_the_cpu_results_and_readme(capsys):
         assert says in capsys.readouterr().err
 
 
+def test_simulators_option_runs_those_keys_beside_mps_and_fgn_under_their_own_prefix(capsys):
+    from benchmarks.tables.cli import chosen_profile, parse_args
+    from benchmarks.tables.simulators import all_simulators
+
+    args = parse_args(["--quick", "--simulators", "gns_unroll", "cconv", "gns_unroll"])
+    profile = chosen_profile(args)
+    assert profile.simulators == ("mps", "fgn", "gns_unroll", "cconv")
+    assert profile.prefix == "tables_quick_gns_unroll_cconv" and profile.name == "quick"
+    assert profile.description.endswith("; only gns_unroll cconv beside MPS and FGN (--simulators)")
+    assert {s.key for s in all_simulators(profile.simulators)} == set(profile.simulators)
+    assert not args.readme  # a subset never rewrites the README's whole-zoo tables
+    assert chosen_profile(parse_args(["--quick"])).prefix == "tables_quick"
+    assert chosen_profile(parse_args(["--simulators", "fgn"])).prefix == "tables_fgn"
+    for argv, says in (
+        (["--simulators", "gns_unrol"], "--simulators: unknown gns_unrol; available: mps, fgn,"),
+        (["--simulators", "gns", "--readme"], "--simulators needs --no-readme"),
+    ):
+        with pytest.raises(SystemExit):
+            parse_args(argv)
+        assert says in capsys.readouterr().err
+
+
 def test_the_tradeoff_figure_keeps_every_key_line_and_title_line_inside_the_figure(tmp_path, monkeypatch):
     """Long row labels (a model with exact stages after it) wrap instead of running off the figure's edge."""
     import math

@@ -6,6 +6,11 @@ Usage::
     python -m benchmarks.tables --quick          # reduced profile, < 5 min; writes tables_quick_* files
     python -m benchmarks.tables --quick --readme --weights runs/train/fgn-cpu --threads 1
     python -m benchmarks.tables --only table2 tradeoff
+    python -m benchmarks.tables --quick --simulators gns_unroll   # one model's rows beside MPS and FGN
+
+``--simulators KEY ...`` runs only those simulators' rows beside MPS and FGN (what a plugin's author checks
+a model with) and writes them under their own prefix (``tables_quick_gns_unroll_*``), never over the whole
+zoo's files or the README.
 
 Every row is a Hydra experiment file (``conf/experiment/<name>.yaml``: ``python -m lagfluid.run
 experiment=table3_dam_fgn`` runs that row alone at the full profile); this script composes them in-process

@@ -9,6 +9,7 @@ import shutil
 import sys
 import time
 from collections.abc import Sequence
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -37,7 +38,7 @@ from benchmarks.tables.report import (
     merge_parts,
     write_readme,
 )
-from benchmarks.tables.simulators import FGN, GROUND_TRUTH
+from benchmarks.tables.simulators import FGN, GROUND_TRUTH, all_simulators
 from lagfluid.errors import ConfigError
 from lagfluid.memory import keep_freed_memory
 from lagfluid.models.fgn.simulator import SHIPPED_WEIGHTS
@@ -153,6 +154,13 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
         "--quick", action="store_true", help="the reduced profile (< 5 min), tables_quick_* files"
     )
     ap.add_argument("--only", nargs="+", choices=PARTS, help="run only these parts")
+    ap.add_argument(
+        "--simulators",
+        nargs="+",
+        metavar="KEY",
+        help="only these simulators' rows, beside MPS and FGN (e.g. a plugin's key); the files get the keys "
+        "in their prefix and the README is left alone",
+    )
     ap.add_argument("--weights", default=None, help="FGN checkpoint directory (default: the shipped weights)")
     ap.add_argument(
         "--threads", type=int, default=os.cpu_count() or 1, help="torch threads (default: all cores)"
@@ -179,6 +187,14 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
         ap.error(f"--device {args.device}: {err}")
     if args.results is None:
         args.results = str(RESULTS if device_type == "cpu" else RESULTS / device_type)
+    if args.simulators:
+        known = [s.key for s in all_simulators()]
+        unknown = [k for k in args.simulators if k not in known]
+        if unknown:
+            ap.error(f"--simulators: unknown {' '.join(unknown)}; available: {', '.join(known)}")
+        if args.readme:
+            ap.error("the README's tables hold every simulator: --simulators needs --no-readme")
+        args.readme = False
     if args.readme is None:
         args.readme = not args.quick and args.device == "cpu"
     elif args.readme and args.device != "cpu":
@@ -186,12 +202,32 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     return args
 
 
+def chosen_profile(args: argparse.Namespace) -> Profile:
+    """The profile of ``args``: full or quick, and with ``--simulators`` only those keys beside MPS and FGN.
+
+    A subset writes under its own prefix (``tables_quick_gns_unroll_*``), so it never replaces the whole
+    zoo's tables, and its ``--only`` reruns merge with its own earlier run.
+    """
+    profile = QUICK if args.quick else FULL
+    if not args.simulators:
+        return profile
+    keys = tuple(dict.fromkeys((GROUND_TRUTH, FGN, *args.simulators)))  # ordered, once each
+    mine = "_".join(dict.fromkeys(k for k in args.simulators if k not in (GROUND_TRUTH, FGN))) or FGN
+    only = f"only {' '.join(k for k in keys if k not in (GROUND_TRUTH, FGN)) or FGN} beside MPS and FGN"
+    return replace(
+        profile,
+        simulators=keys,
+        prefix=f"{profile.prefix}_{mine}",
+        description=f"{profile.description}; {only} (--simulators)",
+    )
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``python -m benchmarks.tables``; returns the exit status (1 when a row failed)."""
     keep_freed_memory()  # as the CLI does: the timings are a user's
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     args = parse_args(argv)
-    profile = QUICK if args.quick else FULL
+    profile = chosen_profile(args)
     if args.weights is None and not (SHIPPED_WEIGHTS / "advection.pt").is_file():
         sys.stderr.write(
             f"benchmarks.tables: no shipped FGN weights in {SHIPPED_WEIGHTS}; pass --weights DIR (a "
