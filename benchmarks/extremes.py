@@ -611,8 +611,11 @@ def run_sweep(profile: ExtremesProfile, args: argparse.Namespace) -> dict[str, A
     out.mkdir(parents=True, exist_ok=True)
     files = [out / f"{profile.prefix}.csv", out / f"{profile.prefix}.md"]
     rows, kept = merged_rows(files[0], result_rows(runs, l0), l0)
-    order = [e.sim.key for e in chosen]
-    order += sorted({r["simulator"] for r in rows} - set(order))
+    # the tables' order of every simulator (a --simulators rerun does not move its rows to the top), then
+    # any key the csv holds that is no simulator any more
+    present = {r["simulator"] for r in rows}
+    order = [e.sim.key for e in entries(None) if e.sim.key in present]
+    order += sorted(present - set(order))
     axes = [a for a in AXES.values() if any(r["axis"] == a.key for r in rows)]
     for axis in axes:
         path = out / f"{profile.prefix}_{axis.key}.png"

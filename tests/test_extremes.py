@@ -158,7 +158,9 @@ def test_a_quick_sweep_writes_verdicts_tables_plots_and_the_readme_section(tmp_p
     assert "8 rows of other axes or simulators kept" in (tmp_path / "extremes_quick.md").read_text()
     # --redraw: the tables and plots again from the csv, nothing run
     (tmp_path / "extremes_quick_dt.png").unlink()
-    assert main([*argv[:1], "--redraw", *argv[8:]]) == 0
+    assert main([*argv[:1], "--redraw", "--simulators", "fgn", *argv[8:]]) == 0
+    summary = (tmp_path / "extremes_quick.md").read_text().split("## Summary")[1]
+    assert summary.index("| mps |") < summary.index("| fgn |")  # the tables' order, not the rerun's first
     with open(tmp_path / "extremes_quick.csv") as f:
         assert {(r["axis"], r["value"], r["simulator"]) for r in csv.DictReader(f)} == set(rows)
     assert (tmp_path / "extremes_quick_dt.png").is_file() and not (
