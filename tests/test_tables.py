@@ -475,26 +475,36 @@ def test_device_option_is_checked_and_keeps_the_cpu_results_and_readme(capsys):
         assert says in capsys.readouterr().err
 
 
-def test_simulators_option_runs_those_keys_beside_mps_and_fgn_under_their_own_prefix(capsys):
-    from benchmarks.tables.cli import chosen_profile, parse_args
+def test_simulators_option_runs_those_keys_beside_mps_and_fgn_under_their_own_prefix(capsys, tmp_path):
+    from benchmarks.tables.cli import chosen_profile, main, parse_args
     from benchmarks.tables.simulators import all_simulators
 
     args = parse_args(["--quick", "--simulators", "gns_unroll", "cconv", "gns_unroll"])
     profile = chosen_profile(args)
-    assert profile.simulators == ("mps", "fgn", "gns_unroll", "cconv")
-    assert profile.prefix == "tables_quick_gns_unroll_cconv" and profile.name == "quick"
-    assert profile.description.endswith("; only gns_unroll cconv beside MPS and FGN (--simulators)")
+    assert profile.simulators == ("mps", "fgn", "cconv", "gns_unroll")  # the tables' order, however typed
+    assert profile.prefix == "tables_quick_cconv_gns_unroll" and profile.name == "quick"
+    assert profile.description.endswith("; only cconv gns_unroll beside MPS and FGN (--simulators)")
+    assert chosen_profile(parse_args(["--quick", "--simulators", "cconv", "gns_unroll"])) == profile
     assert {s.key for s in all_simulators(profile.simulators)} == set(profile.simulators)
-    assert not args.readme  # a subset never rewrites the README's whole-zoo tables
+    assert parse_args(["--simulators", "gns"]).readme is False  # the full profile's default would be True
     assert chosen_profile(parse_args(["--quick"])).prefix == "tables_quick"
-    assert chosen_profile(parse_args(["--simulators", "fgn"])).prefix == "tables_fgn"
+    both = chosen_profile(parse_args(["--simulators", "fgn", "mps"]))
+    assert both.prefix == "tables_mps_fgn" and both.description.endswith("; MPS and FGN only (--simulators)")
     for argv, says in (
         (["--simulators", "gns_unrol"], "--simulators: unknown gns_unrol; available: mps, fgn,"),
-        (["--simulators", "gns", "--readme"], "--simulators needs --no-readme"),
+        (["--simulators", "gns", "--readme"], "--simulators and --readme exclude each other"),
     ):
         with pytest.raises(SystemExit):
             parse_args(argv)
         assert says in capsys.readouterr().err
+    # --only merges with the subset's own earlier run: without one it is refused before any row runs
+    argv = ["--quick", "--simulators", "gns_unroll", "--only", "table3", "--results", str(tmp_path)]
+    assert main(argv) == 2
+    err = capsys.readouterr()
+    says = "tables_quick_gns_unroll_parts.json is missing: run the whole profile first with --simulators "
+    says += "gns_unroll (without --only)"
+    assert says in err.err and "[tables] table3" not in err.out
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_the_tradeoff_figure_keeps_every_key_line_and_title_line_inside_the_figure(tmp_path, monkeypatch):

@@ -26,6 +26,7 @@ def __getattr__(name: str) -> Any:
     if name == "load_dlf_network":
         from .simulator import load_dlf_network
 
+        globals()[name] = load_dlf_network  # once: the next lookup finds it without this hook
         return load_dlf_network
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 

@@ -8,9 +8,10 @@ Usage::
     python -m benchmarks.tables --only table2 tradeoff
     python -m benchmarks.tables --quick --simulators gns_unroll   # one model's rows beside MPS and FGN
 
-``--simulators KEY ...`` runs only those simulators' rows beside MPS and FGN (what a plugin's author checks
-a model with) and writes them under their own prefix (``tables_quick_gns_unroll_*``), never over the whole
-zoo's files or the README.
+``--simulators KEY ...`` runs only those simulators' rows beside MPS and FGN in Tables 1-3, 5 and the
+trade-off (what a plugin's author checks a model with; Table 4, Fig. 5 and the trade-off's MPS variants run
+as always) and writes them under their own prefix (``tables_quick_gns_unroll_*``, the keys in the tables'
+order), never over the whole zoo's files or the README.
 
 Every row is a Hydra experiment file (``conf/experiment/<name>.yaml``: ``python -m lagfluid.run
 experiment=table3_dam_fgn`` runs that row alone at the full profile); this script composes them in-process

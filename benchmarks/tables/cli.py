@@ -36,6 +36,7 @@ from benchmarks.tables.report import (
     cpu_model,
     earlier_parts,
     merge_parts,
+    missing_parts_message,
     write_readme,
 )
 from benchmarks.tables.simulators import FGN, GROUND_TRUTH, all_simulators
@@ -158,8 +159,9 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
         "--simulators",
         nargs="+",
         metavar="KEY",
-        help="only these simulators' rows, beside MPS and FGN (e.g. a plugin's key); the files get the keys "
-        "in their prefix and the README is left alone",
+        help="only these simulators' rows beside MPS and FGN (e.g. a plugin's key) in Tables 1-3, 5 and "
+        "the trade-off (Table 4, Fig. 5 and the trade-off's MPS variants run as always); the files get the "
+        "keys in their prefix and the README is left alone",
     )
     ap.add_argument("--weights", default=None, help="FGN checkpoint directory (default: the shipped weights)")
     ap.add_argument(
@@ -177,7 +179,8 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
         "--readme",
         action=argparse.BooleanOptionalAction,
         default=None,
-        help="rewrite the README's results tables (default: yes for the full profile on the CPU, else no)",
+        help="rewrite the README's results tables (default: yes for the full profile of every simulator on "
+        "the CPU, else no)",
     )
     ap.add_argument("--readme-path", default=str(README), help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
@@ -193,7 +196,7 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
         if unknown:
             ap.error(f"--simulators: unknown {' '.join(unknown)}; available: {', '.join(known)}")
         if args.readme:
-            ap.error("the README's tables hold every simulator: --simulators needs --no-readme")
+            ap.error("--simulators and --readme exclude each other: the README's tables hold every simulator")
         args.readme = False
     if args.readme is None:
         args.readme = not args.quick and args.device == "cpu"
@@ -211,13 +214,14 @@ def chosen_profile(args: argparse.Namespace) -> Profile:
     profile = QUICK if args.quick else FULL
     if not args.simulators:
         return profile
-    keys = tuple(dict.fromkeys((GROUND_TRUTH, FGN, *args.simulators)))  # ordered, once each
-    mine = "_".join(dict.fromkeys(k for k in args.simulators if k not in (GROUND_TRUTH, FGN))) or FGN
-    only = f"only {' '.join(k for k in keys if k not in (GROUND_TRUTH, FGN)) or FGN} beside MPS and FGN"
+    keys = {GROUND_TRUTH, FGN, *args.simulators}
+    listed = tuple(s.key for s in all_simulators() if s.key in keys)  # the tables' order, however typed
+    own = [k for k in listed if k not in (GROUND_TRUTH, FGN)]
+    only = f"only {' '.join(own)} beside MPS and FGN" if own else "MPS and FGN only"
     return replace(
         profile,
-        simulators=keys,
-        prefix=f"{profile.prefix}_{mine}",
+        simulators=listed,
+        prefix="_".join((profile.prefix, *(own or (GROUND_TRUTH, FGN)))),
         description=f"{profile.description}; {only} (--simulators)",
     )
 
@@ -228,6 +232,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     args = parse_args(argv)
     profile = chosen_profile(args)
+    parts_file = Path(args.results) / f"{profile.prefix}_parts.json"
+    if args.only and not parts_file.is_file():  # before any row runs, not after all of them (merge_parts)
+        subset = f"--simulators {' '.join(args.simulators)}" if args.simulators else ""
+        sys.stderr.write(f"benchmarks.tables: {missing_parts_message(parts_file, subset)}\n")
+        return 2
     if args.weights is None and not (SHIPPED_WEIGHTS / "advection.pt").is_file():
         sys.stderr.write(
             f"benchmarks.tables: no shipped FGN weights in {SHIPPED_WEIGHTS}; pass --weights DIR (a "

@@ -82,6 +82,18 @@ def write_readme(
     return True
 
 
+def missing_parts_message(path: Path, options: str = "") -> str:
+    """Why an ``--only`` run cannot go on: the earlier run's ``<prefix>_parts.json`` at ``path`` is missing.
+
+    ``options``: what the whole run needs besides (``--simulators gns_unroll``: the subset's own file).
+    """
+    same = f" with {options}" if options else ""
+    return (
+        f"--only reruns parts of an earlier run, but {path} is missing: run the whole profile first{same} "
+        "(without --only), or the other parts would vanish from the report and the README"
+    )
+
+
 def merge_parts(
     report: Report, partial: bool, commands: dict[str, str], invocation: str = ""
 ) -> dict[str, dict[str, str]]:
@@ -111,10 +123,7 @@ def merge_parts(
         "history": {},
     }
     if partial and not path.is_file():
-        raise ConfigError(
-            f"--only reruns parts of an earlier run, but {path} is missing: run the whole profile first "
-            "(without --only), or the other parts would vanish from the report and the README"
-        )
+        raise ConfigError(missing_parts_message(path))
     if partial:
         try:
             saved = json.loads(path.read_text())
