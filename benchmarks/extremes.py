@@ -590,11 +590,14 @@ def run_sweep(profile: ExtremesProfile, args: argparse.Namespace) -> dict[str, A
     tables_profile = replace(QUICK, name=f"extremes_{profile.name}", frame_interval=profile.frame_interval)
     bench_args = argparse.Namespace(threads=args.threads, weights=None, runs_dir=args.runs_dir)
     bench = Bench(tables_profile, bench_args)
-    print(
-        f"[extremes] {len(axes)} axes x {len(chosen)} simulators; estimated "
-        f"{estimate_seconds(profile, axes, len(chosen)) / 60:.0f} min",
-        flush=True,
-    )
+    if args.redraw:
+        print("[extremes] --redraw: the tables and plots again from the csv; nothing runs", flush=True)
+    else:
+        print(
+            f"[extremes] {len(axes)} axes x {len(chosen)} simulators; estimated "
+            f"{estimate_seconds(profile, axes, len(chosen)) / 60:.0f} min",
+            flush=True,
+        )
     runs = []
     for axis in [] if args.redraw else axes:  # --redraw: the tables and plots of the csv, no run
         for value in profile.values[axis.key]:

@@ -128,7 +128,7 @@ def test_every_simulator_with_a_dam_row_and_both_mps_profiles_are_swept():
         entries(["bogus"])
 
 
-def test_a_quick_sweep_writes_verdicts_tables_plots_and_the_readme_section(tmp_path):
+def test_a_quick_sweep_writes_verdicts_tables_plots_and_the_readme_section(tmp_path, capsys):
     readme = tmp_path / "README.md"
     readme.write_text(f"# x\n\n{README_START}\nold\n{README_END}\nrest\n")
     argv = ["--quick", "--axes", "dt", "velocity", "particles", "--simulators", "mps", "fgn", "--readme"]
@@ -158,7 +158,10 @@ def test_a_quick_sweep_writes_verdicts_tables_plots_and_the_readme_section(tmp_p
     assert "8 rows of other axes or simulators kept" in (tmp_path / "extremes_quick.md").read_text()
     # --redraw: the tables and plots again from the csv, nothing run
     (tmp_path / "extremes_quick_dt.png").unlink()
+    capsys.readouterr()
     assert main([*argv[:1], "--redraw", "--simulators", "fgn", *argv[8:]]) == 0
+    said = capsys.readouterr().out
+    assert "nothing runs" in said and "estimated" not in said  # no estimate for a run that runs nothing
     summary = (tmp_path / "extremes_quick.md").read_text().split("## Summary")[1]
     assert summary.index("| mps |") < summary.index("| fgn |")  # the tables' order, not the rerun's first
     with open(tmp_path / "extremes_quick.csv") as f:
