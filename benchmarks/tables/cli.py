@@ -37,6 +37,7 @@ from benchmarks.tables.report import (
     earlier_parts,
     merge_parts,
     missing_parts_message,
+    parts_file,
     write_readme,
 )
 from benchmarks.tables.simulators import FGN, GROUND_TRUTH, all_simulators
@@ -232,10 +233,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     args = parse_args(argv)
     profile = chosen_profile(args)
-    parts_file = Path(args.results) / f"{profile.prefix}_parts.json"
-    if args.only and not parts_file.is_file():  # before any row runs, not after all of them (merge_parts)
+    saved = parts_file(Path(args.results) / profile.prefix)
+    if args.only and not saved.is_file():  # before any row runs, not after all of them (merge_parts)
         subset = f"--simulators {' '.join(args.simulators)}" if args.simulators else ""
-        sys.stderr.write(f"benchmarks.tables: {missing_parts_message(parts_file, subset)}\n")
+        sys.stderr.write(f"benchmarks.tables: {missing_parts_message(saved, subset)}\n")
         return 2
     if args.weights is None and not (SHIPPED_WEIGHTS / "advection.pt").is_file():
         sys.stderr.write(

@@ -82,6 +82,11 @@ def write_readme(
     return True
 
 
+def parts_file(prefix: Path) -> Path:
+    """``<prefix>_parts.json``: what a run rendered, for the ``--only`` reruns that merge with it."""
+    return Path(f"{prefix}_parts.json")
+
+
 def missing_parts_message(path: Path, options: str = "") -> str:
     """Why an ``--only`` run cannot go on: the earlier run's ``<prefix>_parts.json`` at ``path`` is missing.
 
@@ -114,7 +119,7 @@ def merge_parts(
         ``{"sections": {part: markdown}, "readme": {piece: markdown}, "runs": {key: "date at commit"},
         "commands": {row key: command}, "history": {"date at commit": invocation}}``.
     """
-    path = Path(f"{report.prefix}_parts.json")
+    path = parts_file(report.prefix)
     merged: dict[str, dict[str, str]] = {
         "sections": {},
         "readme": {},
